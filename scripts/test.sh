@@ -1,0 +1,10 @@
+#!/usr/bin/env bash
+# Runs every test: installs what the tests need (software Vulkan for wgpu, Chromium for the
+# dashboard's browser test), then `cargo test` over the library, binary, integration tests and
+# doc tests, and checks that the benchmarks still build.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scripts/setup.sh --browser
+export WGPU_BACKEND="${WGPU_BACKEND:-vulkan}"
+cargo test --locked --all-targets --no-run
+cargo test --locked

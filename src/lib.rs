@@ -1,0 +1,17 @@
+//! pregrasp: multi-view 6D pose distribution tracking and grasp-or-observe decisions.
+//!
+//! See `ARCHITECTURE.md` for the modules and the data flow
+//! (frame -> tracker -> decision -> API). Domain modules (`geometry`, `camera`, `mesh`,
+//! `render`, `dataset`, `generate`, `tracker`, `eval`, `grasp`) never import axum or utoipa;
+//! `api` converts.
+
+pub mod api;
+pub mod camera;
+pub mod dataset;
+pub mod eval;
+pub mod generate;
+pub mod geometry;
+pub mod grasp;
+pub mod mesh;
+pub mod render;
+pub mod tracker;

@@ -1,0 +1,39 @@
+//! The `pregrasp` command line: `generate`, `eval`, `serve`, `replay`.
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "pregrasp",
+    version,
+    about = "Multi-view 6D pose distribution tracking and grasp-or-observe decisions"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Generate multi-view sequences (BOP format, see shared/design/multiview-bop.md).
+    Generate(pregrasp::generate::cli::Args),
+    /// Track every object of a data set and report the paper's metrics.
+    Eval(pregrasp::eval::cli::Args),
+    /// Run the HTTP service (with --demo: the built-in demo scene, dashboard included).
+    Serve(pregrasp::api::cli::ServeArgs),
+    /// Stream a sequence into a running server as a robot would.
+    Replay(pregrasp::api::cli::ReplayArgs),
+}
+
+fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    match Cli::parse().command {
+        Command::Generate(a) => pregrasp::generate::cli::run(a),
+        Command::Eval(a) => pregrasp::eval::cli::run(a),
+        Command::Serve(a) => pregrasp::api::cli::serve(a),
+        Command::Replay(a) => pregrasp::api::cli::replay(a),
+    }
+}
