@@ -23,8 +23,10 @@ const FIRST_CONTACT_TOLERANCE_M: f32 = 0.0005;
 const GROOVE_TOLERANCE_M: f32 = 0.0001;
 /// Two contact normals this close belong to one flat face.
 const SAME_FACE_DEG: f64 = 0.5;
-/// An axis of uncertainty is named as driving a failure above this correlation.
-pub const DRIVER_MIN_CORRELATION: f64 = 0.1;
+/// An axis of uncertainty is named as driving a failure from this dependence on.
+pub const DRIVER_MIN_DEPENDENCE: f64 = 0.1;
+/// Equal-count bins of the offsets for the dependence measure.
+pub const DEPENDENCE_BINS: usize = 8;
 
 /// What the caller asks.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -101,8 +103,12 @@ pub struct AxisDriver {
     /// Standard deviation of the samples' offset from the estimate along/about this axis
     /// (metres or radians).
     pub spread: f64,
-    /// Correlation between failing and the size of the offset along/about this axis.
-    pub failure_correlation: f64,
+    /// How much of the uncertainty about failing this axis explains: the mutual information
+    /// between failing and the sample's offset along/about the axis (in
+    /// [`DEPENDENCE_BINS`] equal-count bins), over the entropy of failing; 0 (independent)
+    /// to 1 (the offset decides). Unlike a correlation it also sees failures in the middle of
+    /// the range (a box that fits at 0 and 180 degrees but not at 90).
+    pub failure_dependence: f64,
 }
 
 /// The share of samples failing one test and what drives it.
@@ -110,7 +116,7 @@ pub struct AxisDriver {
 pub struct Reason {
     pub test: FailureTest,
     pub failure_share: f64,
-    /// Axes whose offsets correlate with this failure (>= [`DRIVER_MIN_CORRELATION`]),
+    /// Axes on whose offsets this failure depends (>= [`DRIVER_MIN_DEPENDENCE`]),
     /// strongest first.
     pub drivers: Vec<AxisDriver>,
     pub message: String,
@@ -137,7 +143,7 @@ pub struct Decision {
     pub reference_from_gripper: Pose,
     /// One entry per test that fails on some sample, largest share first.
     pub reasons: Vec<Reason>,
-    /// All six axes (3 translations, 3 rotations) with their correlation to failing overall,
+    /// All six axes (3 translations, 3 rotations) with the dependence of failing on them,
     /// strongest first.
     pub uncertainty: Vec<AxisDriver>,
     /// The candidates evaluated (only when the query gave no grasp), best first.
@@ -156,11 +162,11 @@ impl Decision {
         success_on_pose(object, gripper, &self.reference_from_gripper, reference_from_object, plane)
     }
 
-    /// Axes driving the failures overall (correlation >= [`DRIVER_MIN_CORRELATION`]).
+    /// Axes driving the failures overall (dependence >= [`DRIVER_MIN_DEPENDENCE`]).
     pub fn driving_axes(&self) -> impl Iterator<Item = &AxisDriver> {
         self.uncertainty
             .iter()
-            .filter(|a| a.failure_correlation >= DRIVER_MIN_CORRELATION)
+            .filter(|a| a.failure_dependence >= DRIVER_MIN_DEPENDENCE)
     }
 }
 
@@ -505,7 +511,7 @@ pub fn decide(
     let reasons = reasons(&eval.outcomes, &offsets, &eval.reference_from_gripper);
     let failed: Vec<bool> = eval.outcomes.iter().map(|o| !o.success()).collect();
     let mut uncertainty = axis_drivers(&failed, &offsets, &eval.reference_from_gripper);
-    uncertainty.sort_by(|a, b| b.failure_correlation.total_cmp(&a.failure_correlation));
+    uncertainty.sort_by(|a, b| b.failure_dependence.total_cmp(&a.failure_dependence));
     Ok(Decision {
         decision: if ci95[0] >= query.threshold {
             Verdict::Grasp
@@ -552,7 +558,6 @@ fn offsets_in_gripper(reference_from_gripper: &Pose, estimate: &Pose, poses: &[P
 fn axis_drivers(failed: &[bool], offsets: &[[f64; 6]], reference_from_gripper: &Pose) -> Vec<AxisDriver> {
     (0..6)
         .map(|a| {
-            let mags: Vec<f64> = offsets.iter().map(|o| o[a].abs()).collect();
             let vals: Vec<f64> = offsets.iter().map(|o| o[a]).collect();
             let axis = Vector3::ith(a % 3, 1.0);
             let r = reference_from_gripper.rotation * axis;
@@ -561,7 +566,7 @@ fn axis_drivers(failed: &[bool], offsets: &[[f64; 6]], reference_from_gripper: &
                 axis: ["gripper_x", "gripper_y", "gripper_z"][a % 3].to_string(),
                 axis_in_reference: [r.x, r.y, r.z],
                 spread: std_dev(&vals),
-                failure_correlation: point_biserial(failed, &mags),
+                failure_dependence: uncertainty_coefficient(failed, &vals),
             }
         })
         .collect()
@@ -575,25 +580,34 @@ fn std_dev(v: &[f64]) -> f64 {
     (v.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / v.len() as f64).sqrt()
 }
 
-/// Pearson correlation between a 0/1 indicator and a value (0 when either is constant).
-fn point_biserial(flag: &[bool], x: &[f64]) -> f64 {
-    let n = x.len() as f64;
-    if n < 2.0 {
+/// Mutual information between a 0/1 indicator and a value cut into [`DEPENDENCE_BINS`]
+/// equal-count bins, over the indicator's entropy (0 when either is constant). The small
+/// positive bias of the estimate ((bins - 1) / (2 n ln 2) bits) is subtracted.
+fn uncertainty_coefficient(flag: &[bool], x: &[f64]) -> f64 {
+    let n = x.len();
+    if n < 2 * DEPENDENCE_BINS {
         return 0.0;
     }
-    let fm = flag.iter().filter(|&&f| f).count() as f64 / n;
-    let xm = x.iter().sum::<f64>() / n;
-    let (mut cov, mut vx) = (0.0, 0.0);
-    for (f, v) in flag.iter().zip(x) {
-        let df = if *f { 1.0 } else { 0.0 } - fm;
-        cov += df * (v - xm);
-        vx += (v - xm) * (v - xm);
-    }
-    let vf = fm * (1.0 - fm) * n;
-    if vf <= 1e-12 || vx <= 1e-18 {
+    let h = |p: f64| if p <= 0.0 || p >= 1.0 { 0.0 } else { -(p * p.log2() + (1.0 - p) * (1.0 - p).log2()) };
+    let pf = flag.iter().filter(|&&f| f).count() as f64 / n as f64;
+    let h_fail = h(pf);
+    if h_fail < 1e-9 {
         return 0.0;
     }
-    cov / (vf * vx).sqrt()
+    let mut order: Vec<usize> = (0..n).collect();
+    order.sort_by(|&a, &b| x[a].total_cmp(&x[b]));
+    let mut h_cond = 0.0;
+    for b in 0..DEPENDENCE_BINS {
+        let (lo, hi) = (b * n / DEPENDENCE_BINS, (b + 1) * n / DEPENDENCE_BINS);
+        if hi <= lo {
+            continue;
+        }
+        let k = order[lo..hi].iter().filter(|&&i| flag[i]).count() as f64;
+        let m = (hi - lo) as f64;
+        h_cond += m / n as f64 * h(k / m);
+    }
+    let bias = (DEPENDENCE_BINS as f64 - 1.0) / (2.0 * n as f64 * std::f64::consts::LN_2);
+    ((h_fail - h_cond - bias) / h_fail).clamp(0.0, 1.0)
 }
 
 fn reasons(outcomes: &[PoseOutcome], offsets: &[[f64; 6]], reference_from_gripper: &Pose) -> Vec<Reason> {
@@ -607,9 +621,9 @@ fn reasons(outcomes: &[PoseOutcome], offsets: &[[f64; 6]], reference_from_grippe
             }
             let mut drivers: Vec<AxisDriver> = axis_drivers(&failed, offsets, reference_from_gripper)
                 .into_iter()
-                .filter(|d| d.failure_correlation >= DRIVER_MIN_CORRELATION)
+                .filter(|d| d.failure_dependence >= DRIVER_MIN_DEPENDENCE)
                 .collect();
-            drivers.sort_by(|a, b| b.failure_correlation.total_cmp(&a.failure_correlation));
+            drivers.sort_by(|a, b| b.failure_dependence.total_cmp(&a.failure_dependence));
             let what = match test {
                 FailureTest::Approach => "the open gripper hits the object on the approach",
                 FailureTest::Table => "the gripper comes too close to the support plane",
@@ -666,13 +680,16 @@ mod tests {
     }
 
     #[test]
-    fn point_biserial_sees_the_failing_side() {
-        let x: Vec<f64> = (0..100).map(|i| i as f64).collect();
-        let f: Vec<bool> = (0..100).map(|i| i > 70).collect();
-        assert!(point_biserial(&f, &x) > 0.6);
-        let g: Vec<bool> = (0..100).map(|i| i % 2 == 0).collect();
-        assert!(point_biserial(&g, &x).abs() < 0.1);
-        assert_eq!(point_biserial(&[true; 3], &[1.0, 2.0, 3.0]), 0.0);
+    fn dependence_sees_one_sided_and_middle_failures_but_not_noise() {
+        let x: Vec<f64> = (0..1000).map(|i| i as f64 - 500.0).collect();
+        let one_sided: Vec<bool> = x.iter().map(|&v| v > 200.0).collect();
+        assert!(uncertainty_coefficient(&one_sided, &x) > 0.5);
+        // fails in the middle of the range (a box turned by about 90 degrees)
+        let middle: Vec<bool> = x.iter().map(|&v| v.abs() < 250.0).collect();
+        assert!(uncertainty_coefficient(&middle, &x) > 0.5);
+        let noise: Vec<bool> = (0..1000).map(|i| (i * 7919) % 13 < 4).collect();
+        assert!(uncertainty_coefficient(&noise, &x) < 0.05);
+        assert_eq!(uncertainty_coefficient(&[true; 100], &x[..100]), 0.0);
     }
 
     #[test]

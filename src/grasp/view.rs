@@ -6,7 +6,7 @@
 //! about axes across the image worst. So a failure driven by translation along axis `a` is
 //! best observed by a view whose optical axis is perpendicular to `a` (score `1 - (o.a)^2`),
 //! a failure driven by rotation about `a` by a view looking along `a` (score `(o.a)^2`); the
-//! scores are weighted by each axis's correlation with failing.
+//! scores are weighted by each axis's dependence of failing on it.
 
 use super::decision::{Decision, Motion};
 use crate::geometry::Pose;
@@ -46,7 +46,7 @@ pub fn suggest_view(decision: &Decision, views: &[CandidateView]) -> Option<View
                 .map(|d| {
                     let a = Vector3::from(d.axis_in_reference);
                     let c = o.dot(&a).powi(2);
-                    d.failure_correlation
+                    d.failure_dependence
                         * match d.motion {
                             Motion::Translation => 1.0 - c,
                             Motion::Rotation => c,
