@@ -21,6 +21,8 @@ const Z95: f64 = 1.959_963_984_540_054;
 const FIRST_CONTACT_TOLERANCE_M: f32 = 0.0005;
 /// The groove holds the contact when it touches this close after the full pad.
 const GROOVE_TOLERANCE_M: f32 = 0.0001;
+/// Contacts are looked for up to this distance from the pad at its first touch.
+const CONTACT_PREDICTION_M: f32 = 0.01;
 /// Two contact normals this close belong to one flat face.
 const SAME_FACE_DEG: f64 = 0.5;
 /// An axis of uncertainty is named as driving a failure from this dependence on.
@@ -188,7 +190,8 @@ impl PoseOutcome {
             FailureTest::Approach => !self.approach_clear,
             FailureTest::Table => !self.table_clear,
             FailureTest::Contact => !self.contact,
-            FailureTest::Alignment => !self.aligned,
+            // only assessable where both pads touch
+            FailureTest::Alignment => self.contact && !self.aligned,
         }
     }
 }
@@ -241,7 +244,17 @@ impl GripperShapes {
             (&self.finger_pose[1], &self.finger),
             (&self.palm_pose, &self.palm),
         ];
+        let obj_box = obj.compute_aabb(obj_pose);
         for (pose, shape) in parts {
+            // the box swept by the part; a part whose sweep misses the object's box is clear
+            let (lo, hi) = (
+                pose.translation - shape.half_extents,
+                pose.translation + shape.half_extents,
+            );
+            let swept_lo = PVector::new(lo.x, lo.y, lo.z - self.approach_m);
+            if obj_box.mins.cmpgt(hi).any() || obj_box.maxs.cmplt(swept_lo).any() {
+                continue;
+            }
             let hit = if self.approach_m > 0.0 {
                 let start = pose.prepend_translation(back);
                 let opts = ShapeCastOptions::with_max_time_of_impact(self.approach_m);
@@ -285,23 +298,32 @@ impl GripperShapes {
             if !aligned {
                 continue;
             }
-            // object normal at the pad contact, gripper frame; it must face the pad (+side x)
-            let n_pad = obj_pose.rotation * pad.normal2;
+            // the pad where it first touches; the groove (the middle of the pad) at the same
+            // place: does it touch as well (within the tolerance), and at what normal?
+            let at = PPose::from_translation(self.pad_pose[k].translation + vel * pad.time_of_impact);
+            let near = |shape: &Cuboid| {
+                query::contact(&at, shape, obj_pose, obj, CONTACT_PREDICTION_M)
+                    .ok()
+                    .flatten()
+            };
+            let (Some(cp), Some(cg)) = (near(&self.pad), near(&self.groove)) else {
+                aligned = false;
+                continue;
+            };
+            // object normals (outward, gripper frame); they must face the pad (+side x)
+            let n_pad = convert::vector_from_parry(cp.normal2).normalize();
+            let n_gr = convert::vector_from_parry(cg.normal2).normalize();
             let outward = Vector3::new(side as f64, 0.0, 0.0);
-            let n_pad = convert::vector_from_parry(n_pad);
-            if n_pad.normalize().dot(&outward) < self.cos_capture {
+            if n_pad.dot(&outward) < self.cos_capture {
                 aligned = false;
                 continue;
             }
-            let groove = cast(&self.pad_pose[k], &self.groove);
-            aligned = match groove {
-                None => false,
-                Some(gr) if gr.time_of_impact <= pad.time_of_impact + GROOVE_TOLERANCE_M => true,
-                Some(gr) => {
-                    // the pad met a flat face at its edge: it squares the face onto itself
-                    let n_gr = convert::vector_from_parry(obj_pose.rotation * gr.normal2);
-                    n_gr.normalize().dot(&n_pad.normalize()) >= SAME_FACE_DEG.to_radians().cos()
-                }
+            aligned = if cg.dist - cp.dist <= GROOVE_TOLERANCE_M {
+                // the contact lies in the groove's mouth: the V walls centre it
+                true
+            } else {
+                // the pad met a flat face at its edge: closing squares the face onto the pad
+                n_gr.dot(&n_pad) >= SAME_FACE_DEG.to_radians().cos()
             };
         }
         (true, aligned)
