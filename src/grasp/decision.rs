@@ -15,6 +15,10 @@ use serde::{Deserialize, Serialize};
 pub const DEFAULT_N_SAMPLES: usize = 1000;
 /// Default threshold on the lower bound of the 95% interval.
 pub const DEFAULT_THRESHOLD: f64 = 0.9;
+/// Generated candidates are first screened on this many samples...
+pub const SCREEN_SAMPLES: usize = 200;
+/// ...and the best this many are evaluated on all samples.
+pub const SCREEN_KEEP: usize = 3;
 /// z of the normal distribution for a two-sided 95% interval.
 const Z95: f64 = 1.959_963_984_540_054;
 /// A pad contact counts as first contact when it comes this close after the finger's.
@@ -130,6 +134,8 @@ pub struct RankedGrasp {
     pub grasp: Grasp,
     pub p_success: f64,
     pub ci95: [f64; 2],
+    /// Samples it was evaluated on ([`SCREEN_SAMPLES`] when screened out early).
+    pub n_samples: usize,
 }
 
 /// The answer.
@@ -455,8 +461,9 @@ fn evaluate_grasp(
 
 /// Plans the grasp on `estimate` (reference_from_object) and checks it on the samples.
 ///
-/// With `query.grasp == None`, the candidates of [`generate_candidates`] are evaluated on the
-/// same samples and the one with the highest p_success is chosen (all are returned, ranked).
+/// With `query.grasp == None`, the candidates of [`generate_candidates`] are screened on the
+/// first [`SCREEN_SAMPLES`] samples, the best [`SCREEN_KEEP`] evaluated on all, and the one
+/// with the highest p_success is chosen (all are returned, fully evaluated ones first).
 /// `p_success` is the share of samples passing every test; its 95% Wilson interval uses the
 /// effective sample size (scaled to the samples used, at most their number). The verdict is
 /// `Grasp` only when the interval's lower bound reaches `query.threshold`.
@@ -507,22 +514,46 @@ pub fn decide(
                     gripper.max_opening_m
                 )));
             }
-            let mut ranked: Vec<(RankedGrasp, Evaluated)> = Vec::new();
+            let cands = label_by_plane(cands, estimate, plane);
+            // screen every candidate on a prefix of the samples, then evaluate the best few
+            // on all of them
+            let n_screen = SCREEN_SAMPLES.min(n);
+            let screen_ess = ess * n_screen as f64 / n as f64;
+            let mut ranked: Vec<(RankedGrasp, Option<Evaluated>)> = Vec::new();
             for g in cands {
-                let e = evaluate_grasp(object, gripper, &shapes, estimate, poses, &g, plane)?;
+                let e = evaluate_grasp(object, gripper, &shapes, estimate, &poses[..n_screen], &g, plane)?;
                 let p = share(&e.outcomes, |o| o.success());
                 ranked.push((
                     RankedGrasp {
                         grasp: g,
                         p_success: p,
-                        ci95: wilson_interval(p, ess),
+                        ci95: wilson_interval(p, screen_ess),
+                        n_samples: n_screen,
                     },
-                    e,
+                    None,
                 ));
             }
             ranked.sort_by(|a, b| b.0.p_success.total_cmp(&a.0.p_success));
+            if n_screen < n {
+                for (r, e) in ranked.iter_mut().take(SCREEN_KEEP) {
+                    let full = evaluate_grasp(object, gripper, &shapes, estimate, poses, &r.grasp, plane)?;
+                    r.p_success = share(&full.outcomes, |o| o.success());
+                    r.ci95 = wilson_interval(r.p_success, ess);
+                    r.n_samples = n;
+                    *e = Some(full);
+                }
+                ranked.sort_by(|a, b| {
+                    (b.0.n_samples, b.0.p_success)
+                        .partial_cmp(&(a.0.n_samples, a.0.p_success))
+                        .unwrap_or(std::cmp::Ordering::Equal)
+                });
+            }
             let list: Vec<RankedGrasp> = ranked.iter().map(|(r, _)| r.clone()).collect();
             let (best, e) = ranked.swap_remove(0);
+            let e = match e {
+                Some(e) => e,
+                None => evaluate_grasp(object, gripper, &shapes, estimate, poses, &best.grasp, plane)?,
+            };
             (best.grasp, e, list)
         }
     };
@@ -551,6 +582,29 @@ pub fn decide(
         uncertainty,
         candidates,
     })
+}
+
+/// Prefixes candidate labels with `top`, `side` or `from below` relative to the table.
+fn label_by_plane(cands: Vec<Grasp>, estimate: &Pose, plane: Option<&SupportPlane>) -> Vec<Grasp> {
+    let Some(Ok((n, _))) = plane.map(|p| p.unit()) else {
+        return cands;
+    };
+    cands
+        .into_iter()
+        .map(|mut g| {
+            let a = estimate.rotation * Vector3::from(g.approach_in_object);
+            let down = -a.dot(&n);
+            let kind = if down > 0.7 {
+                "top"
+            } else if down < -0.7 {
+                "from below"
+            } else {
+                "side"
+            };
+            g.label = format!("{kind}: {}", g.label);
+            g
+        })
+        .collect()
 }
 
 fn share(outcomes: &[PoseOutcome], f: impl Fn(&PoseOutcome) -> bool) -> f64 {
