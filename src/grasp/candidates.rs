@@ -49,7 +49,9 @@ impl Grasp {
             .try_normalize(1e-9)
             .ok_or_else(|| GraspError::InvalidQuery("closing axis parallel to the approach".into()))?;
         if !depth_m.is_finite() {
-            return Err(GraspError::InvalidQuery(format!("depth_m must be finite, got {depth_m}")));
+            return Err(GraspError::InvalidQuery(format!(
+                "depth_m must be finite, got {depth_m}"
+            )));
         }
         let y = z.cross(&x);
         let (x_lo, x_hi) = object.extent_along(&x);
@@ -58,10 +60,7 @@ impl Grasp {
         let tcp = x * (x_lo + x_hi) * 0.5 + y * (y_lo + y_hi) * 0.5 + z * (z_lo + depth_m);
         let rot = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
         Ok(Self {
-            object_from_gripper: Pose::from_parts(
-                Translation3::from(tcp),
-                UnitQuaternion::from_rotation_matrix(&rot),
-            ),
+            object_from_gripper: Pose::from_parts(Translation3::from(tcp), UnitQuaternion::from_rotation_matrix(&rot)),
             approach_in_object: [z.x, z.y, z.z],
             closing_in_object: [x.x, x.y, x.z],
             depth_m,
@@ -110,9 +109,15 @@ pub fn generate_candidates(object: &GraspObject, gripper: &Gripper) -> Vec<Grasp
     for i in 0..3 {
         let a: Vector3<f64> = axes.column(i).into();
         let (lo, hi) = object.extent_along(&a);
-        let deep = ((hi - lo) * 0.5).min(gripper.reach_m() - CANDIDATE_PALM_MARGIN_M).max(0.0);
+        let deep = ((hi - lo) * 0.5)
+            .min(gripper.reach_m() - CANDIDATE_PALM_MARGIN_M)
+            .max(0.0);
         let shallow = ((gripper.reach_m() - CANDIDATE_PALM_MARGIN_M) * CANDIDATE_SHALLOW_SHARE).max(0.0);
-        let depths: Vec<f64> = if deep - shallow > 0.002 { vec![deep, shallow] } else { vec![deep] };
+        let depths: Vec<f64> = if deep - shallow > 0.002 {
+            vec![deep, shallow]
+        } else {
+            vec![deep]
+        };
         for sign in [1.0, -1.0] {
             for j in 0..3 {
                 if j == i {

@@ -167,7 +167,13 @@ impl Decision {
         reference_from_object: &Pose,
         plane: Option<&SupportPlane>,
     ) -> bool {
-        success_on_pose(object, gripper, &self.reference_from_gripper, reference_from_object, plane)
+        success_on_pose(
+            object,
+            gripper,
+            &self.reference_from_gripper,
+            reference_from_object,
+            plane,
+        )
     }
 
     /// Axes driving the failures overall (dependence >= [`DRIVER_MIN_DEPENDENCE`]).
@@ -264,8 +270,7 @@ impl GripperShapes {
             let hit = if self.approach_m > 0.0 {
                 let start = pose.prepend_translation(back);
                 let opts = ShapeCastOptions::with_max_time_of_impact(self.approach_m);
-                query::cast_shapes(&start, PVector::Z, shape, obj_pose, PVector::ZERO, obj, opts)
-                    .map(|h| h.is_some())
+                query::cast_shapes(&start, PVector::Z, shape, obj_pose, PVector::ZERO, obj, opts).map(|h| h.is_some())
             } else {
                 query::intersection_test(pose, shape, obj_pose, obj).map(|i| i.intersecting)
             };
@@ -386,10 +391,7 @@ pub fn evaluate_pose(
     let shapes = GripperShapes::new(gripper);
     let gripper_from_reference = reference_from_gripper.inverse();
     let table_clear = match plane {
-        Some(pl) => {
-            table_clearance_m(gripper, &pl.transformed(&gripper_from_reference))?
-                >= gripper.table_clearance_m
-        }
+        Some(pl) => table_clearance_m(gripper, &pl.transformed(&gripper_from_reference))? >= gripper.table_clearance_m,
         None => true,
     };
     Ok(evaluate_in_gripper(
@@ -416,7 +418,7 @@ pub fn success_on_pose(
 
 /// Wilson score interval for a proportion `p` observed on `n` (possibly fractional) trials.
 pub fn wilson_interval(p: f64, n: f64) -> [f64; 2] {
-    if !(n > 0.0) || !p.is_finite() {
+    if n.is_nan() || n <= 0.0 || !p.is_finite() {
         return [0.0, 1.0];
     }
     let z2 = Z95 * Z95;
@@ -443,10 +445,7 @@ fn evaluate_grasp(
     let reference_from_gripper = estimate * grasp.object_from_gripper;
     let gripper_from_reference = reference_from_gripper.inverse();
     let table_clear = match plane {
-        Some(pl) => {
-            table_clearance_m(gripper, &pl.transformed(&gripper_from_reference))?
-                >= gripper.table_clearance_m
-        }
+        Some(pl) => table_clearance_m(gripper, &pl.transformed(&gripper_from_reference))? >= gripper.table_clearance_m,
         None => true,
     };
     let outcomes = poses
@@ -664,7 +663,13 @@ fn uncertainty_coefficient(flag: &[bool], x: &[f64]) -> f64 {
     if n < 2 * DEPENDENCE_BINS {
         return 0.0;
     }
-    let h = |p: f64| if p <= 0.0 || p >= 1.0 { 0.0 } else { -(p * p.log2() + (1.0 - p) * (1.0 - p).log2()) };
+    let h = |p: f64| {
+        if p <= 0.0 || p >= 1.0 {
+            0.0
+        } else {
+            -(p * p.log2() + (1.0 - p) * (1.0 - p).log2())
+        }
+    };
     let pf = flag.iter().filter(|&&f| f).count() as f64 / n as f64;
     let h_fail = h(pf);
     if h_fail < 1e-9 {
