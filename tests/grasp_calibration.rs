@@ -56,12 +56,12 @@ fn predicted_p_matches_outcomes_on_truth_from_the_same_distribution() {
             // the helper replays exactly the decision's tests
             let k = poses
                 .iter()
-                .filter(|p| success_on_pose(&can, &gripper, &d.reference_from_gripper, p, Some(&plane)))
+                .filter(|p| success_on_pose(&can, &gripper, &d.reference_from_gripper, p, Some(&plane)).unwrap())
                 .count();
             assert!((k as f64 / 300.0 - d.p_success).abs() < 1e-12);
         }
         let truth = draw(&est, t_std, r_std, &mut rng);
-        let ok = d.success_on_pose(&can, &gripper, &truth, Some(&plane));
+        let ok = d.success_on_pose(&can, &gripper, &truth, Some(&plane)).unwrap();
         records.push(CalibrationRecord::from_decision(&d, ok));
     }
     let report = calibration_report(&records);

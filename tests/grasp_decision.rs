@@ -113,13 +113,7 @@ fn tiny_uncertainty_around_a_centred_can_grasps() {
         from_below.grasp.label
     );
     // the planned gripper pose works on the estimate itself
-    assert!(success_on_pose(
-        &can,
-        &gripper,
-        &d.reference_from_gripper,
-        &est,
-        Some(&table())
-    ));
+    assert!(success_on_pose(&can, &gripper, &d.reference_from_gripper, &est, Some(&table())).unwrap());
 }
 
 #[test]

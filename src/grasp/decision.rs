@@ -166,7 +166,7 @@ impl Decision {
         gripper: &Gripper,
         reference_from_object: &Pose,
         plane: Option<&SupportPlane>,
-    ) -> bool {
+    ) -> Result<bool, GraspError> {
         success_on_pose(
             object,
             gripper,
@@ -403,17 +403,15 @@ pub fn evaluate_pose(
 }
 
 /// Whether the grasp planned at `reference_from_gripper` succeeds on the object at
-/// `reference_from_object` (eval uses it on ground truth). An invalid plane counts as failure.
+/// `reference_from_object` (eval uses it on ground truth). Errors: an invalid plane.
 pub fn success_on_pose(
     object: &GraspObject,
     gripper: &Gripper,
     reference_from_gripper: &Pose,
     reference_from_object: &Pose,
     plane: Option<&SupportPlane>,
-) -> bool {
-    evaluate_pose(object, gripper, reference_from_gripper, reference_from_object, plane)
-        .map(|o| o.success())
-        .unwrap_or(false)
+) -> Result<bool, GraspError> {
+    evaluate_pose(object, gripper, reference_from_gripper, reference_from_object, plane).map(|o| o.success())
 }
 
 /// Wilson score interval for a proportion `p` observed on `n` (possibly fractional) trials.
