@@ -220,6 +220,8 @@ struct GripperShapes {
     pad_pose: [PPose; 2],
     approach_m: f32,
     closing_travel_m: f32,
+    /// Lowest z of the pad in the finger's local frame.
+    pad_zone_z: f32,
     cos_capture: f64,
 }
 
@@ -243,6 +245,7 @@ impl GripperShapes {
             ],
             pad_pose: [at(pad_p), at(pad_m)],
             approach_m: g.approach_distance_m as f32,
+            pad_zone_z: (g.finger_size_m[2] * 0.5 - g.pad.length_m) as f32,
             closing_travel_m: (g.max_opening_m - g.min_opening_m) as f32,
             cos_capture: g.pad.capture_angle_deg.to_radians().cos(),
         }
@@ -293,25 +296,31 @@ impl GripperShapes {
                     .ok()
                     .flatten()
             };
-            let Some(pad) = cast(&self.pad_pose[k], &self.pad) else {
-                return (false, false);
-            };
-            if pad.time_of_impact <= 0.0 {
-                // already touching or inside at full opening: not a closing contact
-                return (false, false);
-            }
             let Some(finger) = cast(&self.finger_pose[k], &self.finger) else {
                 return (false, false);
             };
-            if pad.time_of_impact > finger.time_of_impact + FIRST_CONTACT_TOLERANCE_M {
+            if finger.time_of_impact <= 0.0 {
+                // already touching or inside at full opening: not a closing contact
                 return (false, false);
             }
+            // the first touch lies on the pad when the finger's witness is in the pad zone of
+            // its inner face; otherwise the pad must touch no later than the finger
+            let pad_toi = if finger.witness1.z >= self.pad_zone_z && finger.normal1.x * -side > 0.99 {
+                finger.time_of_impact
+            } else {
+                match cast(&self.pad_pose[k], &self.pad) {
+                    Some(pad) if pad.time_of_impact <= finger.time_of_impact + FIRST_CONTACT_TOLERANCE_M => {
+                        pad.time_of_impact
+                    }
+                    _ => return (false, false),
+                }
+            };
             if !aligned {
                 continue;
             }
             // the pad where it first touches; the groove (the middle of the pad) at the same
             // place: does it touch as well (within the tolerance), and at what normal?
-            let at = PPose::from_translation(self.pad_pose[k].translation + vel * pad.time_of_impact);
+            let at = PPose::from_translation(self.pad_pose[k].translation + vel * pad_toi);
             let near = |shape: &Cuboid| {
                 query::contact(&at, shape, obj_pose, obj, CONTACT_PREDICTION_M)
                     .ok()
