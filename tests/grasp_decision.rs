@@ -355,3 +355,21 @@ fn bad_queries_are_errors_not_panics() {
     let big = GraspObject::new(&mesh::builtin_box([0.2, 0.2, 0.2], [[1, 1, 1], [2, 2, 2]])).unwrap();
     assert!(decide(&big, &gripper, &standing(&big), &samples, &query(None)).is_err());
 }
+
+#[test]
+fn pads_above_the_object_fail_contact_and_a_palm_too_deep_fails_the_approach() {
+    let gripper = Gripper::default_parallel_jaw();
+    let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
+    let est = standing(&can);
+    let samples = gaussian_samples(&est, [0.001; 3], [0.003; 3], 300, 13);
+    // TCP 3 cm above the lid: the pads (35 mm long) close on air
+    let d = decide(&can, &gripper, &est, &samples, &query(Some(top_grasp(&can, -0.03)))).unwrap();
+    assert_eq!(d.p_success, 0.0);
+    assert_eq!(d.reasons[0].test, FailureTest::Contact, "{:#?}", d.reasons);
+    assert_eq!(d.reasons[0].failure_share, 1.0);
+    // TCP deeper than the fingers reach: the palm lands on the lid
+    let deep = top_grasp(&can, gripper.reach_m() + 0.01);
+    let d = decide(&can, &gripper, &est, &samples, &query(Some(deep))).unwrap();
+    assert_eq!(d.p_success, 0.0);
+    assert_eq!(d.reasons[0].test, FailureTest::Approach, "{:#?}", d.reasons);
+}
