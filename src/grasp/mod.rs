@@ -21,6 +21,20 @@
 //! the closing axis, z along the approach axis (from the palm towards the finger tips).
 //! nalgebra is our maths; parry3d (glam, f32) is only spoken inside [`convert`].
 //!
+//! Usage (the shape of a call; see `tests/grasp_decision.rs` for runnable ones):
+//!
+//! ```text
+//! let object = GraspObject::new(&mesh)?;                 // hull or decomposition, cached
+//! let gripper = Gripper::default_parallel_jaw();         // or Gripper::from_file(path)?
+//! let query = DecisionQuery { support_plane: Some(table_in_reference), ..Default::default() };
+//! let d = decide(&object, &gripper, &estimate.reference_from_object, &samples, &query)?;
+//! // d.decision, d.p_success, d.ci95, d.reasons[i].{test, failure_share, drivers, message}
+//! let ok = success_on_pose(&object, &gripper, &d.reference_from_gripper, &truth, Some(&plane))?;
+//! let view = suggest_view(&d, &views);                   // which listed view to take next
+//! ```
+//!
+//! Timing (criterion, `cargo bench --bench grasp`, one thread): see `benches/grasp.rs`.
+//!
 //! Files: `gripper.rs` (the gripper model and its JSON), `object.rs` (solid shapes, cached per
 //! mesh content hash), `candidates.rs` (grasps and their generation), `decision.rs` (the
 //! per-sample tests, the decision and its reasons), `calibration.rs` (predicted vs observed),
