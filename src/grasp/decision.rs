@@ -521,6 +521,7 @@ pub fn decide(
                 )));
             }
             let cands = label_by_plane(cands, estimate, plane);
+            let cands = lift_above_plane(object, gripper, cands, estimate, plane)?;
             // screen every candidate on a prefix of the samples, then evaluate the best few
             // on all of them
             let n_screen = SCREEN_SAMPLES.min(n);
@@ -588,6 +589,39 @@ pub fn decide(
         uncertainty,
         candidates,
     })
+}
+
+/// Extra height above the gripper's table clearance when a candidate is lifted.
+pub const LIFT_MARGIN_M: f64 = 0.002;
+
+/// Candidates whose gripper would come closer to the table than its clearance (planned on the
+/// estimate) are moved up along the table normal until they clear it by [`LIFT_MARGIN_M`]
+/// more: a top grasp of a flat object gets shallower, a side grasp moves up the object.
+fn lift_above_plane(
+    object: &GraspObject,
+    gripper: &Gripper,
+    cands: Vec<Grasp>,
+    estimate: &Pose,
+    plane: Option<&SupportPlane>,
+) -> Result<Vec<Grasp>, GraspError> {
+    let Some(pl) = plane else {
+        return Ok(cands);
+    };
+    let (n, _) = pl.unit()?;
+    cands
+        .into_iter()
+        .map(|g| {
+            let reference_from_gripper = estimate * g.object_from_gripper;
+            let clearance = table_clearance_m(gripper, &pl.transformed(&reference_from_gripper.inverse()))?;
+            let lift = gripper.table_clearance_m + LIFT_MARGIN_M - clearance;
+            if lift <= 0.0 {
+                return Ok(g);
+            }
+            let lifted = nalgebra::Translation3::from(n * lift) * reference_from_gripper;
+            let label = format!("{}, lifted {:.0} mm", g.label, lift * 1e3);
+            Ok(Grasp::from_pose(object, estimate.inverse() * lifted, &label))
+        })
+        .collect()
 }
 
 /// Prefixes candidate labels with `top`, `side` or `from below` relative to the table.
