@@ -373,3 +373,23 @@ fn pads_above_the_object_fail_contact_and_a_palm_too_deep_fails_the_approach() {
     assert_eq!(d.p_success, 0.0);
     assert_eq!(d.reasons[0].test, FailureTest::Approach, "{:#?}", d.reasons);
 }
+
+#[test]
+fn a_flat_object_gets_its_top_grasp_lifted_clear_of_the_table() {
+    let gripper = Gripper::default_parallel_jaw();
+    // 3 cm thin: a grasp to the middle would put the finger tips into the table
+    let flat = GraspObject::new(&mesh::builtin_box([0.16, 0.12, 0.03], [[1, 1, 1], [2, 2, 2]])).unwrap();
+    let est = standing(&flat);
+    let samples = gaussian_samples(&est, [0.001; 3], [0.003; 3], 300, 14);
+    let d = decide(&flat, &gripper, &est, &samples, &query(None)).unwrap();
+    assert_eq!(d.decision, Verdict::Grasp, "{:#?}", d.reasons);
+    assert!(
+        d.grasp.label.starts_with("top") && d.grasp.label.contains("lifted"),
+        "{}",
+        d.grasp.label
+    );
+    // the finger tips end above the table by the clearance
+    let tip = d.reference_from_gripper * nalgebra::Point3::new(0.0, 0.0, gripper.tip_z_m());
+    assert!(tip.z >= gripper.table_clearance_m, "{}", tip.z);
+    assert!(d.grasp.depth_m > 0.0 && d.grasp.depth_m < 0.015);
+}
