@@ -24,6 +24,8 @@ pub const DECOMPOSE_ABOVE_CONCAVITY: f64 = 0.25;
 /// lies inside the full one, touching it in every listed direction (for a 5 cm radius, the
 /// gap between directions costs about 0.3 mm).
 pub const HULL_SUPPORT_DIRECTIONS: usize = 256;
+/// Surface samples kept per object (principal axes, local widths of candidates).
+pub const SURFACE_SAMPLES: usize = 4000;
 
 /// How the solid was built.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -39,6 +41,7 @@ struct Inner {
     kind: SolidKind,
     shape: SharedShape,
     hull_vertices_m: Vec<Point3<f64>>,
+    surface_samples_m: Vec<Point3<f64>>,
     principal_axes: Matrix3<f64>,
     concavity: f64,
     n_parts: usize,
@@ -99,6 +102,11 @@ impl GraspObject {
     pub fn principal_axes(&self) -> &Matrix3<f64> {
         &self.0.principal_axes
     }
+    /// Area-uniform points on the mesh surface (object frame; fixed seed): local widths for
+    /// off-centre candidates.
+    pub fn surface_samples_m(&self) -> &[Point3<f64>] {
+        &self.0.surface_samples_m
+    }
     /// 1 - mesh volume / hull volume (0 for a convex closed mesh).
     pub fn concavity(&self) -> f64 {
         self.0.concavity
@@ -138,6 +146,8 @@ fn build(mesh: &Mesh, content_hash: String, kind: SolidKind) -> Result<Inner, Gr
     } else {
         0.0
     };
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let surface_samples_m = mesh.sample_surface(SURFACE_SAMPLES, &mut rng);
     let (shape, n_parts) = match kind {
         SolidKind::ConvexHull => (SharedShape::new(hull), 1),
         SolidKind::ConvexDecomposition => {
@@ -160,7 +170,8 @@ fn build(mesh: &Mesh, content_hash: String, kind: SolidKind) -> Result<Inner, Gr
         kind,
         shape,
         hull_vertices_m,
-        principal_axes: principal_axes(mesh),
+        principal_axes: principal_axes(&surface_samples_m),
+        surface_samples_m,
         concavity,
         n_parts,
     })
@@ -223,10 +234,8 @@ fn hull_volume_m3(hull: &parry3d::shape::ConvexPolyhedron) -> f64 {
 }
 
 /// Principal axes of the surface (area-uniform samples), columns sorted by decreasing spread,
-/// right-handed. Deterministic (fixed seed).
-fn principal_axes(mesh: &Mesh) -> Matrix3<f64> {
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
-    let pts = mesh.sample_surface(4000, &mut rng);
+/// right-handed.
+fn principal_axes(pts: &[Point3<f64>]) -> Matrix3<f64> {
     let n = pts.len().max(1) as f64;
     let mean = pts.iter().fold(Vector3::zeros(), |a, p| a + p.coords) / n;
     let cov = pts.iter().fold(Matrix3::zeros(), |a, p| {
