@@ -24,6 +24,8 @@ pub const DECOMPOSE_ABOVE_CONCAVITY: f64 = 0.25;
 /// lies inside the full one, touching it in every listed direction (for a 5 cm radius, the
 /// gap between directions costs about 0.3 mm).
 pub const HULL_SUPPORT_DIRECTIONS: usize = 256;
+/// Two principal spreads closer than this share are treated as equal (arbitrary axes).
+const PCA_DEGENERATE_SHARE: f64 = 0.05;
 /// Surface samples kept per object (principal axes, local widths of candidates).
 pub const SURFACE_SAMPLES: usize = 4000;
 
@@ -245,6 +247,18 @@ fn principal_axes(pts: &[Point3<f64>]) -> Matrix3<f64> {
     let eig = SymmetricEigen::new(cov);
     let mut order = [0usize, 1, 2];
     order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
+    let l = order.map(|i| eig.eigenvalues[i]);
+    let degenerate = (l[0] - l[1]) <= PCA_DEGENERATE_SHARE * l[0] || (l[1] - l[2]) <= PCA_DEGENERATE_SHARE * l[1];
+    if degenerate {
+        // two spreads (nearly) equal: their axes are arbitrary (a cylinder, a cube); take the
+        // object's own axes, ordered by spread
+        let mut idx = [0usize, 1, 2];
+        idx.sort_by(|&a, &b| cov[(b, b)].total_cmp(&cov[(a, a)]));
+        let mut axes = Matrix3::from_columns(&idx.map(|i| Vector3::ith(i, 1.0)));
+        let z = axes.column(0).cross(&axes.column(1));
+        axes.set_column(2, &z);
+        return axes;
+    }
     let mut axes = Matrix3::zeros();
     for (k, &i) in order.iter().enumerate() {
         let mut v: Vector3<f64> = eig.eigenvectors.column(i).into();
@@ -278,6 +292,12 @@ mod tests {
         // largest spread first: z (0.21), then x (0.16), then y
         let a = o.principal_axes();
         assert!(a.column(0).z.abs() > 0.99 && a.column(1).x.abs() > 0.99, "{a}");
+        // a cube's spreads are all equal: its own axes, not an arbitrary PCA frame
+        let cube = GraspObject::new(&mesh::builtin_box([0.1, 0.1, 0.1], [[1, 2, 3], [4, 5, 6]])).unwrap();
+        let a = cube.principal_axes();
+        for k in 0..3 {
+            assert!(a.column(k).iter().any(|v| (v.abs() - 1.0).abs() < 1e-12), "{a}");
+        }
         // cached: same Arc
         let again = GraspObject::new(&m).unwrap();
         assert!(Arc::ptr_eq(&o.0, &again.0));
