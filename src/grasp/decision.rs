@@ -25,6 +25,8 @@ const Z95: f64 = 1.959_963_984_540_054;
 const FIRST_CONTACT_TOLERANCE_M: f32 = 0.0005;
 /// The groove holds the contact when it touches this close after the full pad.
 const GROOVE_TOLERANCE_M: f32 = 0.0001;
+/// The pad and groove contacts are measured this far before the first touch.
+const CONTACT_BACK_OFF_M: f32 = 0.0005;
 /// Contacts are looked for up to this distance from the pad at its first touch.
 const CONTACT_PREDICTION_M: f32 = 0.01;
 /// Two contact normals this close belong to one flat face.
@@ -320,7 +322,9 @@ impl GripperShapes {
             }
             // the pad where it first touches; the groove (the middle of the pad) at the same
             // place: does it touch as well (within the tolerance), and at what normal?
-            let at = PPose::from_translation(self.pad_pose[k].translation + vel * pad_toi);
+            // (backed off a little so that both are apart: a distance, not a penetration query)
+            let back_off = CONTACT_BACK_OFF_M.min(pad_toi);
+            let at = PPose::from_translation(self.pad_pose[k].translation + vel * (pad_toi - back_off));
             let near = |shape: &Cuboid| {
                 query::contact(&at, shape, obj_pose, obj, CONTACT_PREDICTION_M)
                     .ok()
