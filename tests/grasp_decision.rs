@@ -351,6 +351,10 @@ fn bad_queries_are_errors_not_panics() {
         point_m: [0.0; 3],
     });
     assert!(decide(&can, &gripper, &est, &samples, &q).is_err());
+    let mut bad = samples.clone();
+    bad.poses[3].translation.vector.x = f64::NAN;
+    let err = decide(&can, &gripper, &est, &bad, &query(None)).unwrap_err();
+    assert!(err.to_string().contains("sample 3"), "{err}");
     // an object wider than the stroke on every axis has no candidate
     let big = GraspObject::new(&mesh::builtin_box([0.2, 0.2, 0.2], [[1, 1, 1], [2, 2, 2]])).unwrap();
     assert!(decide(&big, &gripper, &standing(&big), &samples, &query(None)).is_err());

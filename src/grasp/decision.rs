@@ -494,6 +494,24 @@ pub fn decide(
     if samples.poses.is_empty() {
         return Err(GraspError::NoSamples);
     }
+    let finite = |p: &Pose| {
+        p.translation.vector.iter().all(|v| v.is_finite()) && p.rotation.coords.iter().all(|v| v.is_finite())
+    };
+    if !finite(estimate) {
+        return Err(GraspError::InvalidQuery(format!(
+            "the estimate is not finite: {estimate}"
+        )));
+    }
+    if let Some(i) = samples.poses.iter().position(|p| !finite(p)) {
+        return Err(GraspError::InvalidQuery(format!("pose sample {i} is not finite")));
+    }
+    if let Some(g) = &query.grasp {
+        if !finite(&g.object_from_gripper) {
+            return Err(GraspError::InvalidQuery(
+                "grasp.object_from_gripper is not finite".into(),
+            ));
+        }
+    }
     if let Some(pl) = &query.support_plane {
         pl.unit()?;
     }
