@@ -505,12 +505,12 @@ pub fn decide(
     if let Some(i) = samples.poses.iter().position(|p| !finite(p)) {
         return Err(GraspError::InvalidQuery(format!("pose sample {i} is not finite")));
     }
-    if let Some(g) = &query.grasp {
-        if !finite(&g.object_from_gripper) {
-            return Err(GraspError::InvalidQuery(
-                "grasp.object_from_gripper is not finite".into(),
-            ));
-        }
+    if let Some(g) = &query.grasp
+        && !finite(&g.object_from_gripper)
+    {
+        return Err(GraspError::InvalidQuery(
+            "grasp.object_from_gripper is not finite".into(),
+        ));
     }
     if let Some(pl) = &query.support_plane {
         pl.unit()?;
