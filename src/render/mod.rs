@@ -267,6 +267,17 @@ impl Renderer {
         let adapter = find_adapter()?;
         let info = adapter.get_info();
         let limits = adapter.limits();
+        for format in [DEPTH_FORMAT, COLOR_FORMAT, INSTANCE_FORMAT] {
+            let features = adapter.get_texture_format_features(format);
+            if !features.allowed_usages.contains(wgpu::TextureUsages::RENDER_ATTACHMENT) {
+                return Err(RenderError::Device {
+                    adapter: format!("{} ({:?})", info.name, info.backend),
+                    reason: format!(
+                        "cannot render to {format:?} (wgpu's GL backend cannot; use Vulkan: WGPU_BACKEND=vulkan)"
+                    ),
+                });
+            }
+        }
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("pregrasp renderer"),
             required_features: wgpu::Features::empty(),
@@ -280,6 +291,7 @@ impl Renderer {
         device.on_uncaptured_error(Arc::new(|e| {
             tracing::error!("wgpu error: {e}");
         }));
+        let scopes = ErrorScopes::push(&device);
         let bind_group_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("draws"),
             entries: &[wgpu::BindGroupLayoutEntry {
@@ -306,6 +318,7 @@ impl Renderer {
         for outputs in [Outputs::Scene, Outputs::View, Outputs::Depth] {
             pipelines.insert(outputs, make_pipeline(&device, &layout, &module, outputs));
         }
+        scopes.pop()?;
         let max_side_px = limits.max_texture_dimension_2d;
         Ok(Renderer {
             id: NEXT_RENDERER_ID.fetch_add(1, Ordering::Relaxed),
@@ -580,6 +593,11 @@ impl Renderer {
         if records.is_empty() {
             records.resize(DRAW_RECORD_BYTES, 0);
         }
+        let mut cache = self
+            .targets
+            .lock()
+            .map_err(|_| RenderError::Gpu("renderer mutex poisoned by a panic".into()))?;
+        let scopes = ErrorScopes::push(&self.device);
         let draw_buffer = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("draw records"),
             contents: &records,
@@ -594,10 +612,6 @@ impl Renderer {
             }],
         });
 
-        let mut cache = self
-            .targets
-            .lock()
-            .map_err(|_| RenderError::Gpu("renderer mutex poisoned by a panic".into()))?;
         let key = (width, height, outputs);
         let pos = match cache.iter().position(|(k, _)| *k == key) {
             Some(p) => p,
@@ -698,6 +712,7 @@ impl Renderer {
             );
         }
         self.queue.submit(Some(encoder.finish()));
+        scopes.pop()?;
 
         let (tx, rx) = std::sync::mpsc::channel();
         for (k, t) in all_targets.iter().enumerate() {
@@ -791,6 +806,34 @@ impl Renderer {
             color: outputs.color().then(|| make(COLOR_FORMAT, 4, "color")),
             instance: outputs.instance().then(|| make(INSTANCE_FORMAT, 2, "instance")),
             zbuffer_view: zbuffer.create_view(&wgpu::TextureViewDescriptor::default()),
+        }
+    }
+}
+
+/// Captures validation and out-of-memory errors of the calls between `push` and `pop` (on this
+/// thread) and turns them into [`RenderError::Gpu`].
+struct ErrorScopes {
+    // Fields drop in declaration order: the inner scope (pushed last) must be popped first.
+    validation: wgpu::ErrorScopeGuard,
+    out_of_memory: wgpu::ErrorScopeGuard,
+}
+
+impl ErrorScopes {
+    fn push(device: &wgpu::Device) -> Self {
+        let out_of_memory = device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let validation = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        Self {
+            validation,
+            out_of_memory,
+        }
+    }
+
+    fn pop(self) -> Result<(), RenderError> {
+        let validation = pollster::block_on(self.validation.pop());
+        let out_of_memory = pollster::block_on(self.out_of_memory.pop());
+        match validation.or(out_of_memory) {
+            Some(e) => Err(RenderError::Gpu(e.to_string())),
+            None => Ok(()),
         }
     }
 }
