@@ -308,6 +308,41 @@ fn views_are_chunked_across_atlases() {
     }
 }
 
+/// Back faces of closed meshes are culled for speed; that must not change any render.
+#[test]
+fn culling_back_faces_changes_nothing() {
+    let r = renderer();
+    let k = Intrinsics::from_focal(64, 64, 90.0).unwrap();
+    let mug = mug_like();
+    let mut mixed = mug.clone();
+    mixed.triangles.iter_mut().step_by(2).for_each(|t| t.swap(1, 2));
+    let mut flipped = mug.clone();
+    flipped.triangles.iter_mut().for_each(|t| t.swap(1, 2));
+    let culled = r.upload_mesh(&mug).unwrap();
+    let unculled = r.upload_mesh(&mixed).unwrap();
+    let front_culled = r.upload_mesh(&flipped).unwrap();
+    assert!(culled.culls_back_faces() && front_culled.culls_back_faces());
+    assert!(!unculled.culls_back_faces());
+    let grid = RotationGrid::new(30).unwrap();
+    let poses: Vec<Pose> = (0..grid.len())
+        .step_by(grid.len() / 23)
+        .map(|i| Isometry3::from_parts(Translation3::new(0.0, 0.01, 0.4), grid.rotation(grid.unflat(i))))
+        .collect();
+    let reference = r.render_view_depths(&unculled, &k, &poses, clip()).unwrap();
+    for mesh in [&culled, &front_culled] {
+        let got = r.render_view_depths(mesh, &k, &poses, clip()).unwrap();
+        for (i, (a, b)) in got.iter().zip(&reference).enumerate() {
+            let mut covered = 0;
+            for (x, y) in a.data_m.iter().zip(&b.data_m) {
+                assert_eq!(*x > 0.0, *y > 0.0, "view {i}: coverage changed by culling");
+                assert!((x - y).abs() <= 1e-6, "view {i}: depth {x} vs {y}");
+                covered += (*x > 0.0) as usize;
+            }
+            assert!(covered > 100, "view {i}: only {covered} pixels");
+        }
+    }
+}
+
 /// The tracker's premise: the in-plane bins of a centred view are 2-D image rotations.
 #[test]
 fn inplane_rotation_is_an_image_rotation() {
