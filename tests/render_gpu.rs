@@ -343,6 +343,55 @@ fn culling_back_faces_changes_nothing() {
     }
 }
 
+/// Views wider than an atlas still render, one per atlas.
+#[test]
+fn views_wider_than_an_atlas_render() {
+    let r = renderer();
+    let wide = pregrasp::render::MAX_ATLAS_SIDE_PX + 16;
+    if wide > r.max_image_side_px() {
+        return; // the device limit is the atlas side: nothing wider can be asked for
+    }
+    let k = Intrinsics::from_focal(wide, 4, 4.0).unwrap();
+    assert_eq!(
+        r.views_per_atlas(wide, 4),
+        pregrasp::render::MAX_ATLAS_SIDE_PX as usize / 4
+    );
+    let mesh = r.upload_mesh(&square(0.5, [255, 255, 255])).unwrap();
+    let d = r
+        .render_view_depths(&mesh, &k, &[Isometry3::translation(0.0, 0.0, 1.5)], clip())
+        .unwrap();
+    assert!((d[0].get(wide / 2, 2) - 1.5).abs() < DEPTH_TOL_M);
+    assert_eq!(d[0].get(0, 2), 0.0);
+}
+
+/// One renderer shared by threads gives the same images as used alone.
+#[test]
+fn renders_from_several_threads_agree() {
+    let r = renderer();
+    let k = Intrinsics::from_focal(48, 40, 50.0).unwrap();
+    let mesh = r.upload_mesh(&mug_like()).unwrap();
+    let grid = RotationGrid::new(30).unwrap();
+    let poses: Vec<Pose> = (0..12)
+        .map(|i| Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.45), grid.rotation(grid.unflat(i * 37))))
+        .collect();
+    let alone = r.render_view_depths(&mesh, &k, &poses, clip()).unwrap();
+    let handles: Vec<_> = (0..3)
+        .map(|_| {
+            let (r, mesh, poses) = (r.clone(), mesh.clone(), poses.clone());
+            std::thread::spawn(move || {
+                (0..4)
+                    .map(|_| r.render_view_depths(&mesh, &k, &poses, clip()).unwrap())
+                    .collect::<Vec<_>>()
+            })
+        })
+        .collect();
+    for h in handles {
+        for got in h.join().unwrap() {
+            assert_eq!(got, alone);
+        }
+    }
+}
+
 /// The tracker's premise: the in-plane bins of a centred view are 2-D image rotations.
 #[test]
 fn inplane_rotation_is_an_image_rotation() {

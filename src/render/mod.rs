@@ -545,8 +545,15 @@ impl Renderer {
 
     /// Views per atlas for views of `width` x `height` pixels.
     pub fn views_per_atlas(&self, width: u32, height: u32) -> usize {
+        let (cols, rows) = self.atlas_grid(width, height);
+        (cols * rows) as usize
+    }
+
+    /// Columns and rows of views in an atlas (at least one view, even if larger than
+    /// [`MAX_ATLAS_SIDE_PX`]; sizes are checked against the device limit separately).
+    fn atlas_grid(&self, width: u32, height: u32) -> (u32, u32) {
         let side = self.atlas_side();
-        ((side / width.max(1)) * (side / height.max(1))) as usize
+        ((side / width.max(1)).max(1), (side / height.max(1)).max(1))
     }
 
     fn atlas_side(&self) -> u32 {
@@ -567,8 +574,7 @@ impl Renderer {
         self.check_mesh(mesh)?;
         let (w, h) = (intrinsics.width, intrinsics.height);
         self.check_size(w, h)?;
-        let side = self.atlas_side();
-        let cols = side / w;
+        let (cols, _) = self.atlas_grid(w, h);
         let per_atlas = self.views_per_atlas(w, h);
         for chunk in camera_from_object.chunks(per_atlas.max(1)) {
             let n = chunk.len() as u32;
