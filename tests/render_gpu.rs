@@ -328,8 +328,10 @@ fn culling_back_faces_changes_nothing() {
         .step_by(grid.len() / 23)
         .map(|i| Isometry3::from_parts(Translation3::new(0.0, 0.01, 0.4), grid.rotation(grid.unflat(i))))
         .collect();
+    let two_sided = r.upload_mesh_two_sided(&mug).unwrap();
+    assert!(!two_sided.culls_back_faces());
     let reference = r.render_view_depths(&unculled, &k, &poses, clip()).unwrap();
-    for mesh in [&culled, &front_culled] {
+    for mesh in [&culled, &front_culled, &two_sided] {
         let got = r.render_view_depths(mesh, &k, &poses, clip()).unwrap();
         for (i, (a, b)) in got.iter().zip(&reference).enumerate() {
             let mut covered = 0;
@@ -341,6 +343,25 @@ fn culling_back_faces_changes_nothing() {
             assert!(covered > 100, "view {i}: only {covered} pixels");
         }
     }
+}
+
+/// A camera inside a closed mesh sees its inside only when the mesh is uploaded two-sided.
+#[test]
+fn camera_inside_a_closed_mesh_needs_two_sided() {
+    let r = renderer();
+    let k = Intrinsics::from_focal(32, 32, 20.0).unwrap();
+    let room = builtin_box([1.0, 1.0, 1.0], [[100, 100, 100], [150, 150, 150]]);
+    let culled = r.upload_mesh(&room).unwrap();
+    let two_sided = r.upload_mesh_two_sided(&room).unwrap();
+    let inside = [Pose::identity()];
+    let d = r.render_view_depths(&two_sided, &k, &inside, clip()).unwrap();
+    assert!(
+        (d[0].get(16, 16) - 0.5).abs() < DEPTH_TOL_M,
+        "far wall at 0.5 m: {}",
+        d[0].get(16, 16)
+    );
+    let d = r.render_view_depths(&culled, &k, &inside, clip()).unwrap();
+    assert!(d[0].data_m.iter().all(|v| *v == 0.0), "culled walls seen from inside");
 }
 
 /// Views wider than an atlas still render, one per atlas.

@@ -386,8 +386,19 @@ impl Renderer {
         self.max_side_px
     }
 
-    /// Copies a mesh to the device (validates it first).
+    /// Copies a mesh to the device (validates it first). Closed, consistently oriented meshes
+    /// get their invisible faces culled ([`invisible_faces`]): correct for cameras outside the
+    /// mesh; for a camera inside a closed mesh (a room) use [`Self::upload_mesh_two_sided`].
     pub fn upload_mesh(&self, mesh: &Mesh) -> Result<MeshHandle, RenderError> {
+        self.upload(mesh, invisible_faces(mesh))
+    }
+
+    /// Like [`Self::upload_mesh`] but never culls faces (slower on software adapters).
+    pub fn upload_mesh_two_sided(&self, mesh: &Mesh) -> Result<MeshHandle, RenderError> {
+        self.upload(mesh, None)
+    }
+
+    fn upload(&self, mesh: &Mesh, cull: Option<wgpu::Face>) -> Result<MeshHandle, RenderError> {
         mesh.validate()?;
         let mut vertex_bytes = Vec::with_capacity(mesh.vertices_m.len() * VERTEX_STRIDE as usize);
         for (i, v) in mesh.vertices_m.iter().enumerate() {
@@ -414,7 +425,7 @@ impl Renderer {
                 vertices,
                 indices,
                 index_count: (mesh.triangles.len() * 3) as u32,
-                cull: invisible_faces(mesh),
+                cull,
             }),
         })
     }
