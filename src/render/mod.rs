@@ -791,9 +791,7 @@ impl Renderer {
         }
 
         let n = (width * height) as usize;
-        let depth_m = read_rows(&targets.depth_m, width, height, |b| {
-            f32::from_le_bytes([b[0], b[1], b[2], b[3]])
-        })?;
+        let depth_m = read_f32_rows(&targets.depth_m, width, height)?;
         let color = match &targets.color {
             Some(t) => read_rows(t, width, height, |b| [b[0], b[1], b[2]])?,
             None => Vec::new(),
@@ -904,6 +902,30 @@ impl ErrorScopes {
             None => Ok(()),
         }
     }
+}
+
+/// [`read_rows`] for `f32` targets: whole rows at once where the mapping is aligned (it is: rows
+/// start at multiples of 256 bytes), value by value otherwise.
+fn read_f32_rows(t: &Target, width: u32, height: u32) -> Result<Vec<f32>, RenderError> {
+    let mut out = Vec::with_capacity((width * height) as usize);
+    {
+        let mapped = t
+            .readback
+            .get_mapped_range(..)
+            .map_err(|e| RenderError::Readback(e.to_string()))?;
+        for y in 0..height as usize {
+            let row = &mapped[y * t.padded_bytes_per_row as usize..][..width as usize * 4];
+            match bytemuck::try_cast_slice::<u8, f32>(row) {
+                Ok(values) if cfg!(target_endian = "little") => out.extend_from_slice(values),
+                _ => out.extend(
+                    row.chunks_exact(4)
+                        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+                ),
+            }
+        }
+    }
+    t.readback.unmap();
+    Ok(out)
 }
 
 /// Reads a mapped readback buffer row by row (dropping the row padding), then unmaps it.
