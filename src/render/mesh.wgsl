@@ -1,8 +1,9 @@
 // Off-screen rendering of triangle meshes with pinhole intrinsics.
 //
-// One storage-buffer record per draw (selected by the instance index, so one bind group serves
-// every draw of a submit): the camera_from_object transform, the pinhole intrinsics of the
-// view, its clip range and the instance id to write into the mask.
+// One uniform record per draw (all records of a submit in one buffer, selected by a dynamic
+// offset): the camera_from_object transform, the pinhole intrinsics of the view, its clip range
+// and the instance id to write into the mask. A uniform (rather than a storage array indexed by
+// the instance index) lets a software rasteriser load it once per draw instead of per vertex.
 //
 // Projection: pixel (u, v) (u right, v down, pixel centres at integer + 0.5) of a point
 // (x, y, z) in the optical frame (x right, y down, z forward) is u = fx x / z + cx,
@@ -23,7 +24,7 @@ struct Draw {
     ids: vec4<u32>,
 };
 
-@group(0) @binding(0) var<storage, read> draws: array<Draw>;
+@group(0) @binding(0) var<uniform> draw: Draw;
 
 struct VertexIn {
     @location(0) position_m: vec3<f32>,
@@ -38,8 +39,8 @@ struct VertexOut {
 };
 
 @vertex
-fn vs_main(v: VertexIn, @builtin(instance_index) draw_index: u32) -> VertexOut {
-    let d = draws[draw_index];
+fn vs_main(v: VertexIn) -> VertexOut {
+    let d = draw;
     let p = (d.camera_from_object * vec4<f32>(v.position_m, 1.0)).xyz;
     let fx = d.focal_principal.x;
     let fy = d.focal_principal.y;

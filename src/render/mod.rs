@@ -21,14 +21,14 @@
 //!
 //! # Speed (see `benches/render.rs`)
 //! On the 2-core machine without a GPU (lavapipe), batched 64x64 depth views of a
-//! 5,000-triangle mesh cost about 0.34 ms of CPU each (about 2,900 views per CPU-second); per
-//! triangle set-up and rasterisation dominate, vertex shading is about a quarter. Three things
-//! keep it there: one submit per atlas (a submit costs about 13 ms on lavapipe), one storage
-//! buffer of per-draw records indexed by the instance index (no per-view bind groups or
-//! buffer writes), and culling the invisible faces of closed meshes ([`invisible_faces`]),
-//! which halves the triangles the rasteriser sets up (1.8x faster). Render targets and
-//! readback buffers are cached per size. For whole codebooks use
-//! [`Renderer::for_each_view_depth`], which streams one atlas at a time.
+//! 5,000-triangle mesh cost about 0.27 ms of CPU each (about 3,700 views per CPU-second); per
+//! triangle set-up and rasterisation dominate. What keeps it there: one submit per atlas (a
+//! submit costs about 13 ms on lavapipe); all per-draw records in one uniform buffer, selected
+//! by a dynamic offset (lavapipe then loads a record once per draw; a storage array indexed by
+//! the instance index was loaded per vertex and made vertex work twice as expensive); culling
+//! the invisible faces of closed meshes ([`invisible_faces`]), which halves the triangles the
+//! rasteriser sets up (1.8x faster); render targets and readback buffers cached per size. For
+//! whole codebooks use [`Renderer::for_each_view_depth`], which streams one atlas at a time.
 //!
 //! # What a real GPU changes
 //! Not measured here (no GPU on this machine); what follows is the expected shift. Triangle
@@ -285,6 +285,8 @@ pub struct Renderer {
     info: wgpu::AdapterInfo,
     max_side_px: u32,
     bind_group_layout: wgpu::BindGroupLayout,
+    /// Bytes between draw records: the record rounded up to the uniform offset alignment.
+    record_stride: u32,
     pipeline_layout: wgpu::PipelineLayout,
     shader: wgpu::ShaderModule,
     /// Pipelines by outputs and culled face, created on first use.
@@ -339,9 +341,9 @@ impl Renderer {
                 binding: 0,
                 visibility: wgpu::ShaderStages::VERTEX,
                 ty: wgpu::BindingType::Buffer {
-                    ty: wgpu::BufferBindingType::Storage { read_only: true },
-                    has_dynamic_offset: false,
-                    min_binding_size: None,
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: true,
+                    min_binding_size: wgpu::BufferSize::new(DRAW_RECORD_BYTES as u64),
                 },
                 count: None,
             }],
@@ -364,6 +366,7 @@ impl Renderer {
             info,
             max_side_px,
             bind_group_layout,
+            record_stride: (DRAW_RECORD_BYTES as u32).next_multiple_of(limits.min_uniform_buffer_offset_alignment),
             pipeline_layout: layout,
             shader: module,
             pipelines: Mutex::new(HashMap::new()),
@@ -643,12 +646,14 @@ impl Renderer {
         background_rgb: [u8; 3],
         draws: &[DrawCall],
     ) -> Result<Readback, RenderError> {
-        let mut records = Vec::with_capacity(draws.len().max(1) * DRAW_RECORD_BYTES);
+        let stride = self.record_stride as usize;
+        let mut records = Vec::with_capacity(draws.len().max(1) * stride);
         for d in draws {
             write_draw_record(&mut records, d)?;
+            records.resize(records.len().next_multiple_of(stride), 0);
         }
         if records.is_empty() {
-            records.resize(DRAW_RECORD_BYTES, 0);
+            records.resize(stride, 0);
         }
         let mut cache = self
             .targets
@@ -658,14 +663,18 @@ impl Renderer {
         let draw_buffer = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("draw records"),
             contents: &records,
-            usage: wgpu::BufferUsages::STORAGE,
+            usage: wgpu::BufferUsages::UNIFORM,
         });
         let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("draw records"),
             layout: &self.bind_group_layout,
             entries: &[wgpu::BindGroupEntry {
                 binding: 0,
-                resource: draw_buffer.as_entire_binding(),
+                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                    buffer: &draw_buffer,
+                    offset: 0,
+                    size: wgpu::BufferSize::new(DRAW_RECORD_BYTES as u64),
+                }),
             }],
         });
 
@@ -721,7 +730,6 @@ impl Renderer {
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
-            pass.set_bind_group(0, &bind_group, &[]);
             let mut bound: Option<&GpuMesh> = None;
             let mut bound_cull = None;
             for (i, d) in draws.iter().enumerate() {
@@ -737,8 +745,8 @@ impl Renderer {
                 let [x, y, w, h] = d.viewport;
                 pass.set_viewport(x as f32, y as f32, w as f32, h as f32, 0.0, 1.0);
                 pass.set_scissor_rect(x, y, w, h);
-                let i = i as u32;
-                pass.draw_indexed(0..d.mesh.index_count, 0, i..i + 1);
+                pass.set_bind_group(0, &bind_group, &[i as u32 * self.record_stride]);
+                pass.draw_indexed(0..d.mesh.index_count, 0, 0..1);
             }
         }
         let all_targets: Vec<&Target> = std::iter::once(&targets.depth_m)
