@@ -137,6 +137,24 @@ fn tilted_plane_has_analytic_depth() {
     assert!(covered > 2000, "only {covered} pixels covered");
     eprintln!("tilted plane: {covered} pixels, worst depth error {worst:e} m");
     assert!(worst <= DEPTH_TOL_M as f64, "worst depth error {worst} m");
+    // The depth-only path (z-buffer read back) meets the same bound on the same pixels.
+    let mesh = r.upload_mesh(&square(1.2, [255, 255, 255])).unwrap();
+    let z = r.render_view_depths(&mesh, &k, &[pose], clip()).unwrap();
+    let mut worst_z = 0.0f64;
+    for y in 0..k.height {
+        for x in 0..k.width {
+            let d = z[0].get(x, y) as f64;
+            assert_eq!(d > 0.0, out.depth.get(x, y) > 0.0, "coverage at ({x}, {y})");
+            if d > 0.0 {
+                worst_z = worst_z.max((d - plane_depth(&k, x, y, &p0, &n)).abs());
+            }
+        }
+    }
+    eprintln!("tilted plane, depth only: worst depth error {worst_z:e} m");
+    assert!(
+        worst_z <= DEPTH_TOL_M as f64,
+        "depth-only worst depth error {worst_z} m"
+    );
 }
 
 #[test]
@@ -288,7 +306,17 @@ fn batched_views_match_scene_renders() {
         assert!(cov * 100 <= a.len(), "view {i}: {cov} pixels change coverage");
         assert!(maxd <= DEPTH_TOL_M, "view {i}: depth differs by {maxd} m");
         assert!(col * 100 <= a.len(), "view {i}: {col} pixels change colour");
-        assert_eq!(depths[i], views[i].depth, "view {i}: depth-only render differs");
+        // The depth-only path reads the z-buffer instead of the shaded R32Float target.
+        let z = &depths[i].data_m;
+        let zcov = z.iter().zip(a).filter(|(x, y)| (**x > 0.0) != (**y > 0.0)).count();
+        let zmax = z
+            .iter()
+            .zip(a)
+            .filter(|(x, y)| **x > 0.0 && **y > 0.0)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
+        assert_eq!(zcov, 0, "view {i}: depth-only coverage differs");
+        assert!(zmax <= DEPTH_TOL_M, "view {i}: depth-only depth differs by {zmax} m");
     }
 }
 

@@ -10,8 +10,9 @@
 // v = fy y / z + cy. The viewport of a view spans its `width` x `height` pixels, so
 // ndc_x = 2 u / width - 1 and (wgpu's NDC is y up) ndc_y = 1 - 2 v / height; multiplied by
 // w = z this is linear in the point. Depth in the z-buffer is reversed (1 at near, 0 at far,
-// compare Greater) for precision; the metric z-depth itself is written to an R32Float target
-// from the perspective-correct interpolated camera-frame point.
+// compare Greater) for precision; with colour outputs the metric z-depth itself is written to
+// an R32Float target from the perspective-correct interpolated camera-frame point; depth-only
+// renders have no fragment shader and read the z-buffer back (converted on the CPU).
 
 struct Draw {
     // Column-major camera_from_object (rotation and translation), metres.
@@ -101,9 +102,4 @@ fn fs_view(f: VertexOut) -> ViewOut {
     out.depth_m = f.point_in_camera_m.z;
     out.color = vec4<f32>(shade(f.point_in_camera_m, f.color), 1.0);
     return out;
-}
-
-@fragment
-fn fs_depth(f: VertexOut) -> @location(0) f32 {
-    return f.point_in_camera_m.z;
 }
