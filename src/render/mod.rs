@@ -30,8 +30,9 @@
 //! rasteriser sets up (1.8x faster); depth-only renders without a fragment shader, reading the
 //! reversed f32 z-buffer back and converting it to metres on the CPU (resolution about 1e-7 of
 //! the depth; 10 % faster than writing an R32Float target); render targets and readback
-//! buffers cached per size. For
-//! whole codebooks use [`Renderer::for_each_view_depth`], which streams one atlas at a time.
+//! buffers cached per size. Views with colour ([`Renderer::render_views`]) cost about 30 % more
+//! than depth only. For whole codebooks use [`Renderer::for_each_view_depth`], which streams
+//! one atlas at a time.
 //!
 //! # What a real GPU changes
 //! Not measured here (no GPU on this machine); what follows is the expected shift. Triangle
@@ -41,9 +42,9 @@
 //! ([`MAX_ATLAS_SIDE_PX`] could follow the device limit, 8192 or more), double-buffered
 //! readback (map atlas k while atlas k+1 renders), and matching codebooks on the GPU in a
 //! compute pass instead of reading views back at all (on lavapipe compute is about 250x slower
-//! than the CPU, so matching stays on the CPU there). Depth precision is unchanged: the metric
-//! depth is written to `R32Float` from the perspective-correct camera-frame point, and the
-//! z-buffer is reversed `Depth32Float`.
+//! than the CPU, so matching stays on the CPU there). Depth precision is unchanged: with colour
+//! the metric depth is written to `R32Float` from the perspective-correct camera-frame point;
+//! depth only reads the reversed `Depth32Float` z-buffer.
 
 use crate::camera::{ColorImage, DepthImage, Intrinsics};
 use crate::geometry::Pose;
