@@ -9,10 +9,10 @@
 // (x, y, z) in the optical frame (x right, y down, z forward) is u = fx x / z + cx,
 // v = fy y / z + cy. The viewport of a view spans its `width` x `height` pixels, so
 // ndc_x = 2 u / width - 1 and (wgpu's NDC is y up) ndc_y = 1 - 2 v / height; multiplied by
-// w = z this is linear in the point. Depth in the z-buffer is reversed (1 at near, 0 at far,
-// compare Greater) for precision; with colour outputs the metric z-depth itself is written to
-// an R32Float target from the perspective-correct interpolated camera-frame point; depth-only
-// renders have no fragment shader and read the z-buffer back (converted on the CPU).
+// w = z this is linear in the point. The z-buffer holds reversed depth
+// d = near (far - z) / ((far - near) z) (1 at near, 0 at far, compare Greater; with f32 this
+// resolves about 1e-7 of the depth); it is read back and converted to metric z-depth on the
+// CPU, so depth-only renders need no fragment shader.
 
 struct Draw {
     // Column-major camera_from_object (rotation and translation), metres.
@@ -77,29 +77,19 @@ fn shade(p: vec3<f32>, color: vec3<f32>) -> vec3<f32> {
 }
 
 struct SceneOut {
-    @location(0) depth_m: f32,
-    @location(1) color: vec4<f32>,
-    @location(2) instance_id: u32,
+    @location(0) color: vec4<f32>,
+    @location(1) instance_id: u32,
 };
 
 @fragment
 fn fs_scene(f: VertexOut) -> SceneOut {
     var out: SceneOut;
-    out.depth_m = f.point_in_camera_m.z;
     out.color = vec4<f32>(shade(f.point_in_camera_m, f.color), 1.0);
     out.instance_id = f.instance_id;
     return out;
 }
 
-struct ViewOut {
-    @location(0) depth_m: f32,
-    @location(1) color: vec4<f32>,
-};
-
 @fragment
-fn fs_view(f: VertexOut) -> ViewOut {
-    var out: ViewOut;
-    out.depth_m = f.point_in_camera_m.z;
-    out.color = vec4<f32>(shade(f.point_in_camera_m, f.color), 1.0);
-    return out;
+fn fs_view(f: VertexOut) -> @location(0) vec4<f32> {
+    return vec4<f32>(shade(f.point_in_camera_m, f.color), 1.0);
 }

@@ -13,8 +13,8 @@
 //!
 //! Adapter: a real GPU when there is one, else a software adapter (Mesa's lavapipe on Vulkan).
 //! `WGPU_BACKEND` (e.g. `vulkan`) restricts the backends; without it we try the primary
-//! backends (Vulkan, Metal, DX12) first, then all. wgpu's GL backend cannot render to
-//! `R32Float` here, so it is a last resort.
+//! backends (Vulkan, Metal, DX12) first, then all. wgpu's GL backend cannot copy depth
+//! textures to buffers, so it is refused with a clear error.
 //!
 //! The renderer is `Send + Sync`: share it with `Arc`. GPU work is serialised by an internal
 //! mutex (which also guards the cached render targets and readback buffers).
@@ -27,10 +27,10 @@
 //! by a dynamic offset (lavapipe then loads a record once per draw; a storage array indexed by
 //! the instance index was loaded per vertex and made vertex work twice as expensive); culling
 //! the invisible faces of closed meshes ([`invisible_faces`]), which halves the triangles the
-//! rasteriser sets up (1.8x faster); depth-only renders without a fragment shader, reading the
-//! reversed f32 z-buffer back and converting it to metres on the CPU (resolution about 1e-7 of
-//! the depth; 10 % faster than writing an R32Float target); render targets and readback
-//! buffers cached per size. Views with colour ([`Renderer::render_views`]) cost about 30 % more
+//! rasteriser sets up (1.8x faster); depth read back from the reversed f32 z-buffer and
+//! converted to metres on the CPU (resolution about 1e-7 of the depth), so depth-only renders
+//! run no fragment shader at all (10 % faster than writing an `R32Float` target); render
+//! targets and readback buffers cached per size. Views with colour ([`Renderer::render_views`]) cost about 30 % more
 //! than depth only. For whole codebooks use [`Renderer::for_each_view_depth`], which streams
 //! one atlas at a time.
 //!
@@ -42,9 +42,8 @@
 //! ([`MAX_ATLAS_SIDE_PX`] could follow the device limit, 8192 or more), double-buffered
 //! readback (map atlas k while atlas k+1 renders), and matching codebooks on the GPU in a
 //! compute pass instead of reading views back at all (on lavapipe compute is about 250x slower
-//! than the CPU, so matching stays on the CPU there). Depth precision is unchanged: with colour
-//! the metric depth is written to `R32Float` from the perspective-correct camera-frame point;
-//! depth only reads the reversed `Depth32Float` z-buffer.
+//! than the CPU, so matching stays on the CPU there). Depth precision is unchanged (the
+//! reversed `Depth32Float` z-buffer).
 
 use crate::camera::{ColorImage, DepthImage, Intrinsics};
 use crate::geometry::Pose;
@@ -63,7 +62,6 @@ pub const SHADERS: &[(&str, &str)] = &[("mesh.wgsl", MESH_SHADER_WGSL)];
 /// Largest atlas side used for batched views (pixels); smaller if the device allows less.
 pub const MAX_ATLAS_SIDE_PX: u32 = 2048;
 
-const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R32Float;
 const COLOR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 const INSTANCE_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R16Uint;
 const ZBUFFER_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
@@ -239,13 +237,10 @@ type TargetKey = (u32, u32, Outputs);
 
 /// The render targets of one size and kind.
 struct Targets {
-    /// Metric depth written by the fragment shader (with colour outputs).
-    depth_m: Option<Target>,
+    /// The reversed z-buffer, read back and converted to metric depth.
+    zbuffer: Target,
     color: Option<Target>,
     instance: Option<Target>,
-    zbuffer_view: wgpu::TextureView,
-    /// The z-buffer itself, read back for depth-only renders (no fragment shader at all).
-    zbuffer: Option<Target>,
 }
 
 /// A draw: the mesh, its record (transform, intrinsics, clip, id) and its viewport.
@@ -318,15 +313,21 @@ impl Renderer {
         let adapter = find_adapter()?;
         let info = adapter.get_info();
         let limits = adapter.limits();
-        for format in [DEPTH_FORMAT, COLOR_FORMAT, INSTANCE_FORMAT] {
+        let unfit = |reason: String| RenderError::Device {
+            adapter: format!("{} ({:?})", info.name, info.backend),
+            reason: format!("{reason} (wgpu's GL backend cannot; use Vulkan: WGPU_BACKEND=vulkan)"),
+        };
+        let downlevel = adapter.get_downlevel_capabilities();
+        if !downlevel
+            .flags
+            .contains(wgpu::DownlevelFlags::DEPTH_TEXTURE_AND_BUFFER_COPIES)
+        {
+            return Err(unfit("cannot copy depth textures to buffers".into()));
+        }
+        for format in [COLOR_FORMAT, INSTANCE_FORMAT] {
             let features = adapter.get_texture_format_features(format);
             if !features.allowed_usages.contains(wgpu::TextureUsages::RENDER_ATTACHMENT) {
-                return Err(RenderError::Device {
-                    adapter: format!("{} ({:?})", info.name, info.backend),
-                    reason: format!(
-                        "cannot render to {format:?} (wgpu's GL backend cannot; use Vulkan: WGPU_BACKEND=vulkan)"
-                    ),
-                });
+                return Err(unfit(format!("cannot render to {format:?}")));
             }
         }
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
@@ -709,9 +710,6 @@ impl Renderer {
                 background_rgb[2] as f64 / 255.0,
             ];
             let mut attachments = Vec::new();
-            if let Some(t) = &targets.depth_m {
-                attachments.push(Some(color_attachment(&t.view, wgpu::Color::TRANSPARENT)));
-            }
             if let Some(t) = &targets.color {
                 attachments.push(Some(color_attachment(
                     &t.view,
@@ -730,14 +728,10 @@ impl Renderer {
                 label: Some("render"),
                 color_attachments: &attachments,
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &targets.zbuffer_view,
+                    view: &targets.zbuffer.view,
                     depth_ops: Some(wgpu::Operations {
                         load: wgpu::LoadOp::Clear(0.0),
-                        store: if targets.zbuffer.is_some() {
-                            wgpu::StoreOp::Store
-                        } else {
-                            wgpu::StoreOp::Discard
-                        },
+                        store: wgpu::StoreOp::Store,
                     }),
                     stencil_ops: None,
                 }),
@@ -764,9 +758,9 @@ impl Renderer {
                 pass.draw_indexed(0..d.mesh.index_count, 0, 0..1);
             }
         }
-        let all_targets: Vec<&Target> = [&targets.depth_m, &targets.color, &targets.instance, &targets.zbuffer]
-            .into_iter()
-            .flatten()
+        let all_targets: Vec<&Target> = std::iter::once(&targets.zbuffer)
+            .chain(targets.color.as_ref())
+            .chain(targets.instance.as_ref())
             .collect();
         for t in &all_targets {
             encoder.copy_texture_to_buffer(
@@ -814,17 +808,10 @@ impl Renderer {
         }
 
         let n = (width * height) as usize;
-        let depth_m = match (&targets.depth_m, &targets.zbuffer) {
-            (Some(t), _) => read_f32_rows(t, width, height)?,
-            (None, Some(z)) => {
-                let mut values = read_f32_rows(z, width, height)?;
-                if let Some(d) = draws.first() {
-                    zbuffer_to_metric(&mut values, d.clip);
-                }
-                values
-            }
-            (None, None) => return Err(RenderError::Gpu("no depth target".into())),
-        };
+        let mut depth_m = read_f32_rows(&targets.zbuffer, width, height)?;
+        if let Some(d) = draws.first() {
+            zbuffer_to_metric(&mut depth_m, d.clip);
+        }
         let color = match &targets.color {
             Some(t) => read_rows(t, width, height, |b| [b[0], b[1], b[2]])?,
             None => Vec::new(),
@@ -888,14 +875,10 @@ impl Renderer {
             }
         };
         let all = wgpu::TextureAspect::All;
-        let zbuffer = make(ZBUFFER_FORMAT, 4, "z-buffer", wgpu::TextureAspect::DepthOnly);
-        let depth_only = outputs == Outputs::Depth;
         Targets {
-            depth_m: (!depth_only).then(|| make(DEPTH_FORMAT, 4, "depth_m", all)),
+            zbuffer: make(ZBUFFER_FORMAT, 4, "z-buffer", wgpu::TextureAspect::DepthOnly),
             color: outputs.color().then(|| make(COLOR_FORMAT, 4, "color", all)),
             instance: outputs.instance().then(|| make(INSTANCE_FORMAT, 2, "instance", all)),
-            zbuffer_view: zbuffer.view.clone(),
-            zbuffer: depth_only.then_some(zbuffer),
         }
     }
 }
@@ -1038,16 +1021,13 @@ fn make_pipeline(
         })
     };
     let mut targets = Vec::new();
-    if outputs != Outputs::Depth {
-        targets.push(target(DEPTH_FORMAT));
-    }
     if outputs.color() {
         targets.push(target(COLOR_FORMAT));
     }
     if outputs.instance() {
         targets.push(target(INSTANCE_FORMAT));
     }
-    // Depth-only renders need no fragment shader: the z-buffer is read back.
+    // Depth comes from the z-buffer; depth-only renders need no fragment shader at all.
     let fragment_entry = match outputs {
         Outputs::Scene => Some("fs_scene"),
         Outputs::View => Some("fs_view"),
@@ -1180,7 +1160,7 @@ fn find_adapter() -> Result<wgpu::Adapter, RenderError> {
             Err(e) => tried.push(format!("{backends:?}: {e}")),
         }
         let mut all = pollster::block_on(instance.enumerate_adapters(backends));
-        // Prefer real GPUs, then software adapters; GL cannot render R32Float here.
+        // Prefer real GPUs, then software adapters; GL cannot copy depth to buffers.
         all.sort_by_key(|a| {
             let i = a.get_info();
             (i.backend == wgpu::Backend::Gl, i.device_type == wgpu::DeviceType::Cpu)
