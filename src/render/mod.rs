@@ -67,7 +67,7 @@ const INSTANCE_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R16Uint;
 const ZBUFFER_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 /// Bytes of one vertex: position f32x3, colour unorm8x4.
 const VERTEX_STRIDE: u64 = 16;
-/// Bytes of one draw record in the storage buffer (see `Draw` in mesh.wgsl).
+/// Bytes of one draw record in the uniform buffer (see `Draw` in mesh.wgsl).
 const DRAW_RECORD_BYTES: usize = 112;
 /// Meshes with at most this fraction of flawed edges (holes, non-manifold) count as closed and
 /// consistently oriented for culling.
@@ -159,7 +159,8 @@ impl MeshHandle {
         self.inner.index_count as usize / 3
     }
 
-    /// True when the mesh is closed and consistently oriented, so back faces are culled.
+    /// True when the mesh is closed and consistently oriented, so its invisible faces are culled
+    /// (see [`invisible_faces`]).
     pub fn culls_back_faces(&self) -> bool {
         self.inner.cull.is_some()
     }
@@ -597,13 +598,19 @@ impl Renderer {
         self.check_mesh(mesh)?;
         let (w, h) = (intrinsics.width, intrinsics.height);
         self.check_size(w, h)?;
-        let (cols, _) = self.atlas_grid(w, h);
+        let (cols, rows) = self.atlas_grid(w, h);
         let per_atlas = self.views_per_atlas(w, h);
         for chunk in camera_from_object.chunks(per_atlas.max(1)) {
+            // Atlas sizes rounded up to powers of two of views, so that calls with varying
+            // numbers of views reuse a few cached render targets.
             let n = chunk.len() as u32;
-            let used_cols = n.min(cols);
             let used_rows = n.div_ceil(cols);
-            let (atlas_w, atlas_h) = (used_cols * w, used_rows * h);
+            let (atlas_cols, atlas_rows) = if used_rows > 1 {
+                (cols, used_rows.next_power_of_two().min(rows))
+            } else {
+                (n.next_power_of_two().min(cols), 1)
+            };
+            let (atlas_w, atlas_h) = (atlas_cols * w, atlas_rows * h);
             let draws: Vec<DrawCall> = chunk
                 .iter()
                 .enumerate()
@@ -687,18 +694,21 @@ impl Renderer {
             }],
         });
 
+        // Least recently used first.
         let key = (width, height, outputs);
-        let pos = match cache.iter().position(|(k, _)| *k == key) {
-            Some(p) => p,
+        match cache.iter().position(|(k, _)| *k == key) {
+            Some(p) => {
+                let entry = cache.remove(p);
+                cache.push(entry);
+            }
             None => {
                 if cache.len() >= MAX_CACHED_TARGETS {
                     cache.remove(0);
                 }
                 cache.push((key, self.make_targets(width, height, outputs)));
-                cache.len() - 1
             }
-        };
-        let targets = &cache[pos].1;
+        }
+        let targets = &cache[cache.len() - 1].1;
 
         let mut encoder = self
             .device
