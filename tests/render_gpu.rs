@@ -135,6 +135,27 @@ fn tilted_plane_has_analytic_depth() {
         }
     }
     assert!(covered > 2000, "only {covered} pixels covered");
+    // Headlight Lambert on white: 255 (0.2 + 0.8 |n . ray|), flat over each triangle.
+    let mut shaded = 0;
+    for y in (4..k.height - 4).step_by(5) {
+        for x in (4..k.width - 4).step_by(5) {
+            let around = (x - 1..=x + 1).all(|xx| (y - 1..=y + 1).all(|yy| out.depth.get(xx, yy) > 0.0));
+            if !around {
+                continue; // derivatives at silhouettes use helper pixels
+            }
+            let ray = pixel_ray(&k, x, y).normalize();
+            let want = 255.0 * (0.2 + 0.8 * n.dot(&ray).abs());
+            let got = out.color.data[(y * k.width + x) as usize];
+            for c in got {
+                assert!(
+                    (c as f64 - want).abs() <= 3.0,
+                    "colour {got:?} at ({x}, {y}), expected {want:.1}"
+                );
+            }
+            shaded += 1;
+        }
+    }
+    assert!(shaded > 50, "only {shaded} shaded samples");
     eprintln!("tilted plane: {covered} pixels, worst depth error {worst:e} m");
     assert!(worst <= DEPTH_TOL_M as f64, "worst depth error {worst} m");
     // The depth-only path (z-buffer read back) meets the same bound on the same pixels.

@@ -820,6 +820,8 @@ impl Renderer {
         let n = (width * height) as usize;
         let mut depth_m = read_f32_rows(&targets.zbuffer, width, height)?;
         if let Some(d) = draws.first() {
+            // One clip range per batch (the z-buffer encoding depends on it).
+            debug_assert!(draws.iter().all(|o| o.clip == d.clip));
             zbuffer_to_metric(&mut depth_m, d.clip);
         }
         let color = match &targets.color {
