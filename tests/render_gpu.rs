@@ -289,6 +289,20 @@ fn batched_views_match_scene_renders() {
     let views = r.render_views(&mesh, &k, &poses, clip()).unwrap();
     let depths = r.render_view_depths(&mesh, &k, &poses, clip()).unwrap();
     assert_eq!(views.len(), poses.len());
+    // The streaming forms give the same views in the same order.
+    let mut streamed = Vec::new();
+    r.for_each_view(&mesh, &k, &poses, clip(), |i, v| streamed.push((i, v)))
+        .unwrap();
+    assert!(streamed.iter().enumerate().all(|(j, (i, v))| j == *i && *v == views[j]));
+    let mut streamed_depths = Vec::new();
+    r.for_each_view_depth(&mesh, &k, &poses, clip(), |i, d| streamed_depths.push((i, d)))
+        .unwrap();
+    assert!(
+        streamed_depths
+            .iter()
+            .enumerate()
+            .all(|(j, (i, d))| j == *i && *d == depths[j])
+    );
     for (i, pose) in poses.iter().enumerate() {
         let scene = r
             .render_scene(

@@ -504,22 +504,40 @@ impl Renderer {
         clip: ClipRange,
     ) -> Result<Vec<ViewRender>, RenderError> {
         let mut out = Vec::with_capacity(camera_from_object.len());
-        self.render_views_each(mesh, intrinsics, camera_from_object, clip, Outputs::View, |rb, x, y| {
-            let (w, h) = (intrinsics.width, intrinsics.height);
-            out.push(ViewRender {
-                depth: DepthImage {
-                    width: w,
-                    height: h,
-                    data_m: rb.depth_tile(x, y, w, h),
-                },
-                color: ColorImage {
-                    width: w,
-                    height: h,
-                    data: rb.color_tile(x, y, w, h),
-                },
-            });
-        })?;
+        self.for_each_view(mesh, intrinsics, camera_from_object, clip, |_, v| out.push(v))?;
         Ok(out)
+    }
+
+    /// Streams the views of [`Self::render_views`] to `f(index, view)` in order, one atlas at a
+    /// time, so that callers rendering very many views need not hold them all.
+    pub fn for_each_view(
+        &self,
+        mesh: &MeshHandle,
+        intrinsics: &Intrinsics,
+        camera_from_object: &[Pose],
+        clip: ClipRange,
+        mut f: impl FnMut(usize, ViewRender),
+    ) -> Result<(), RenderError> {
+        let (w, h) = (intrinsics.width, intrinsics.height);
+        let mut index = 0;
+        self.render_views_each(mesh, intrinsics, camera_from_object, clip, Outputs::View, |rb, x, y| {
+            f(
+                index,
+                ViewRender {
+                    depth: DepthImage {
+                        width: w,
+                        height: h,
+                        data_m: rb.depth_tile(x, y, w, h),
+                    },
+                    color: ColorImage {
+                        width: w,
+                        height: h,
+                        data: rb.color_tile(x, y, w, h),
+                    },
+                },
+            );
+            index += 1;
+        })
     }
 
     /// Like [`Self::render_views`] but depth only (faster: no colour target, less readback).
