@@ -33,7 +33,12 @@
 //! let view = suggest_view(&d, &views);                   // which listed view to take next
 //! ```
 //!
-//! Timing (criterion, `cargo bench --bench grasp`, one thread): see `benches/grasp.rs`.
+//! Timing (`cargo bench --bench grasp`, one rayon thread, 1,000 samples, on the project's
+//! 2-core machine while it was shared by other builds): 25 ms median for the 4,539-triangle
+//! YCB can (convex hull), 39 ms for the power drill (VHACD, 9 parts); thread CPU time per
+//! decision 12 ms and 19-20 ms. Half of it is parry's convex support function, a linear scan
+//! over the hull's vertices (hence the simplified hull); a hill-climbing support map would be
+//! the next step.
 //!
 //! Files: `gripper.rs` (the gripper model and its JSON), `object.rs` (solid shapes, cached per
 //! mesh content hash), `candidates.rs` (grasps and their generation), `decision.rs` (the
