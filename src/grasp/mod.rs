@@ -50,6 +50,7 @@ pub mod candidates;
 pub mod convert;
 pub mod decision;
 pub mod gripper;
+pub mod hull;
 pub mod object;
 pub mod view;
 

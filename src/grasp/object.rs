@@ -151,7 +151,7 @@ fn build(mesh: &Mesh, content_hash: String, kind: SolidKind) -> Result<Inner, Gr
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
     let surface_samples_m = mesh.sample_surface(SURFACE_SAMPLES, &mut rng);
     let (shape, n_parts) = match kind {
-        SolidKind::ConvexHull => (SharedShape::new(hull), 1),
+        SolidKind::ConvexHull => (SharedShape::new(super::hull::ClimbingHull::new(hull)), 1),
         SolidKind::ConvexDecomposition => {
             let params = VHACDParameters {
                 resolution: 48,
