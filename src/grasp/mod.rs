@@ -33,17 +33,18 @@
 //! let view = suggest_view(&d, &views);                   // which listed view to take next
 //! ```
 //!
-//! Timing (`cargo bench --bench grasp`, one rayon thread, 1,000 samples, on the project's
-//! 2-core machine while it was shared by other builds): 25 ms median for the 4,539-triangle
-//! YCB can (convex hull), 39 ms for the power drill (VHACD, 9 parts); thread CPU time per
-//! decision 12 ms and 19-20 ms. Half of it is parry's convex support function, a linear scan
-//! over the hull's vertices (hence the simplified hull); a hill-climbing support map would be
-//! the next step.
+//! Timing (`cargo bench --bench grasp`, one rayon thread, 1,000 samples, a fixed top grasp):
+//! thread CPU time per decision about 10 ms for the 4,539-triangle YCB can (convex hull,
+//! hill-climbing support, see `hull.rs`), 8 ms for the cracker box, 16-20 ms for the mug and
+//! the drill (VHACD, 9-21 parts). Criterion's wall-clock median on the project's 2-core
+//! machine, shared with six other builds (load average 10-17), was 25 ms for the can and
+//! 39-61 ms for the drill.
 //!
 //! Files: `gripper.rs` (the gripper model and its JSON), `object.rs` (solid shapes, cached per
-//! mesh content hash), `candidates.rs` (grasps and their generation), `decision.rs` (the
-//! per-sample tests, the decision and its reasons), `calibration.rs` (predicted vs observed),
-//! `view.rs` (next-best-view suggestion).
+//! mesh content hash), `hull.rs` (a convex hull with a hill-climbing support map),
+//! `candidates.rs` (grasps and their generation), `decision.rs` (the per-sample tests, the
+//! decision and its reasons), `calibration.rs` (predicted vs observed), `view.rs`
+//! (next-best-view suggestion), `convert.rs` (nalgebra <-> parry).
 
 pub mod calibration;
 pub mod candidates;
