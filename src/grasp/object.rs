@@ -164,6 +164,21 @@ fn build(mesh: &Mesh, content_hash: String, kind: SolidKind) -> Result<Inner, Gr
             if n == 0 {
                 return Err(GraspError::InvalidMesh("convex decomposition found no parts".into()));
             }
+            // the parts with the hill-climbing support map as well
+            let s = match s.as_compound() {
+                Some(c) => {
+                    let parts: Vec<_> = c
+                        .shapes()
+                        .iter()
+                        .map(|(pose, part)| match part.as_convex_polyhedron() {
+                            Some(p) => (*pose, SharedShape::new(super::hull::ClimbingHull::new(p.clone()))),
+                            None => (*pose, part.clone()),
+                        })
+                        .collect();
+                    SharedShape::new(parry3d::shape::Compound::new(parts))
+                }
+                None => s,
+            };
             (s, n)
         }
     };
