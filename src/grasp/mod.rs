@@ -35,8 +35,8 @@
 //!
 //! Timing (`cargo bench --bench grasp`, one rayon thread, 1,000 samples, a fixed top grasp):
 //! thread CPU time per decision about 10 ms for the 4,539-triangle YCB can (convex hull,
-//! hill-climbing support, see `hull.rs`), 8 ms for the cracker box, 16-20 ms for the mug and
-//! the drill (VHACD, 9-21 parts). Criterion's wall-clock median on the project's 2-core
+//! hill-climbing support, see `hull.rs`), 8 ms for the cracker box, 15-16 ms for the mug, the
+//! drill and the banana (VHACD, 9-21 parts). Criterion's wall-clock median on the project's 2-core
 //! machine, shared with six other builds (load average 10-17), was 25 ms for the can and
 //! 39-61 ms for the drill.
 //!
