@@ -65,6 +65,7 @@ fn predicted_p_matches_outcomes_on_truth_from_the_same_distribution() {
         records.push(CalibrationRecord::from_decision(&d, ok));
     }
     let report = calibration_report(&records);
+    eprintln!("{}", serde_json::to_string(&report).unwrap());
     assert_eq!(report.n_decisions, 150);
     assert!(report.reliability.len() >= 4, "{:?}", report.reliability);
     assert!(report.ece < 0.12, "ECE {} {:?}", report.ece, report.reliability);
