@@ -34,11 +34,11 @@
 //! ```
 //!
 //! Timing (`cargo bench --bench grasp`, one rayon thread, 1,000 samples, a fixed top grasp):
-//! thread CPU time per decision about 10 ms for the 4,539-triangle YCB can (convex hull,
-//! hill-climbing support, see `hull.rs`), 8 ms for the cracker box, 15-16 ms for the mug, the
-//! drill and the banana (VHACD, 9-21 parts). Criterion's wall-clock median on the project's 2-core
-//! machine, shared with six other builds (load average 10-17), was 25 ms for the can and
-//! 39-61 ms for the drill.
+//! CPU time per decision 10.6 ms for the 4,539-triangle YCB can (convex hull, hill-climbing
+//! support, see `hull.rs`) and 15.2 ms for the power drill (VHACD, 9 parts); about 8 ms for
+//! the cracker box and 15-16 ms for the mug and the banana. The wall-clock medians on the
+//! project's 2-core machine, shared with six other builds (load average about 13), were
+//! 25-32 ms (can) and 39-61 ms (drill).
 //!
 //! Files: `gripper.rs` (the gripper model and its JSON), `object.rs` (solid shapes, cached per
 //! mesh content hash), `hull.rs` (a convex hull with a hill-climbing support map),
