@@ -246,8 +246,9 @@ fn rotation_about_the_cans_axis_grasps_about_the_cracker_boxs_long_axis_observes
     assert!(d.p_success < 0.6, "{}", d.p_success);
     let driver = d.driving_axes().next().expect("a driving axis");
     assert_eq!(driver.motion, Motion::Rotation, "{:#?}", d.uncertainty);
-    // the rotation that drives it is about the vertical (reference z)
+    // the rotation that drives it is about the vertical (reference z), the box's long axis
     assert!(driver.axis_in_reference[2].abs() > 0.99, "{driver:?}");
+    assert!(driver.axis_in_object[2].abs() > 0.99, "{driver:?}");
     // but a small spread about the same axis still grasps: the flat pads square the box
     let d = decide(
         &cracker,

@@ -108,6 +108,9 @@ pub struct AxisDriver {
     pub axis: String,
     /// The same axis in the reference (robot camera) frame.
     pub axis_in_reference: [f64; 3],
+    /// The same axis in the object's frame at the estimate (e.g. the can's axis, the box's
+    /// long axis).
+    pub axis_in_object: [f64; 3],
     /// Standard deviation of the samples' offset from the estimate along/about this axis
     /// (metres or radians).
     pub spread: f64,
@@ -590,9 +593,10 @@ pub fn decide(
     let p = share(&eval.outcomes, |o| o.success());
     let ci95 = wilson_interval(p, ess);
     let offsets = offsets_in_gripper(&eval.reference_from_gripper, estimate, poses);
-    let reasons = reasons(&eval.outcomes, &offsets, &eval.reference_from_gripper);
+    let frames = (&eval.reference_from_gripper, &grasp.object_from_gripper);
+    let reasons = reasons(&eval.outcomes, &offsets, frames);
     let failed: Vec<bool> = eval.outcomes.iter().map(|o| !o.success()).collect();
-    let mut uncertainty = axis_drivers(&failed, &offsets, &eval.reference_from_gripper);
+    let mut uncertainty = axis_drivers(&failed, &offsets, frames);
     uncertainty.sort_by(|a, b| b.failure_dependence.total_cmp(&a.failure_dependence));
     Ok(Decision {
         decision: if ci95[0] >= query.threshold {
@@ -693,16 +697,22 @@ fn offsets_in_gripper(reference_from_gripper: &Pose, estimate: &Pose, poses: &[P
         .collect()
 }
 
-fn axis_drivers(failed: &[bool], offsets: &[[f64; 6]], reference_from_gripper: &Pose) -> Vec<AxisDriver> {
+/// (reference_from_gripper, object_from_gripper) of the planned grasp.
+type GraspFrames<'a> = (&'a Pose, &'a Pose);
+
+fn axis_drivers(failed: &[bool], offsets: &[[f64; 6]], frames: GraspFrames) -> Vec<AxisDriver> {
+    let (reference_from_gripper, object_from_gripper) = frames;
     (0..6)
         .map(|a| {
             let vals: Vec<f64> = offsets.iter().map(|o| o[a]).collect();
             let axis = Vector3::ith(a % 3, 1.0);
             let r = reference_from_gripper.rotation * axis;
+            let o = object_from_gripper.rotation * axis;
             AxisDriver {
                 motion: if a < 3 { Motion::Translation } else { Motion::Rotation },
                 axis: ["gripper_x", "gripper_y", "gripper_z"][a % 3].to_string(),
                 axis_in_reference: [r.x, r.y, r.z],
+                axis_in_object: [o.x, o.y, o.z],
                 spread: std_dev(&vals),
                 failure_dependence: uncertainty_coefficient(failed, &vals),
             }
@@ -754,7 +764,7 @@ fn uncertainty_coefficient(flag: &[bool], x: &[f64]) -> f64 {
     ((h_fail - h_cond - bias) / h_fail).clamp(0.0, 1.0)
 }
 
-fn reasons(outcomes: &[PoseOutcome], offsets: &[[f64; 6]], reference_from_gripper: &Pose) -> Vec<Reason> {
+fn reasons(outcomes: &[PoseOutcome], offsets: &[[f64; 6]], frames: GraspFrames) -> Vec<Reason> {
     let mut out: Vec<Reason> = FailureTest::ALL
         .iter()
         .filter_map(|&test| {
@@ -763,7 +773,7 @@ fn reasons(outcomes: &[PoseOutcome], offsets: &[[f64; 6]], reference_from_grippe
             if s == 0.0 {
                 return None;
             }
-            let mut drivers: Vec<AxisDriver> = axis_drivers(&failed, offsets, reference_from_gripper)
+            let mut drivers: Vec<AxisDriver> = axis_drivers(&failed, offsets, frames)
                 .into_iter()
                 .filter(|d| d.failure_dependence >= DRIVER_MIN_DEPENDENCE)
                 .collect();
