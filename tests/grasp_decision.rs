@@ -249,6 +249,22 @@ fn rotation_about_the_cans_axis_grasps_about_the_cracker_boxs_long_axis_observes
     // the rotation that drives it is about the vertical (reference z), the box's long axis
     assert!(driver.axis_in_reference[2].abs() > 0.99, "{driver:?}");
     assert!(driver.axis_in_object[2].abs() > 0.99, "{driver:?}");
+    // rotation about the vertical is in-plane for a camera looking down: that view is best
+    let side_view = CandidateView {
+        name: "side".into(),
+        reference_from_camera: Pose::from_parts(
+            Translation3::new(0.0, 0.1, 0.1),
+            UnitQuaternion::rotation_between(&Vector3::z(), &Vector3::x()).unwrap(),
+        ),
+    };
+    let top_view = CandidateView {
+        name: "top".into(),
+        reference_from_camera: Pose::from_parts(
+            Translation3::new(0.6, 0.1, 1.0),
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+        ),
+    };
+    assert_eq!(suggest_view(&d, &[side_view, top_view]).unwrap().name, "top");
     // but a small spread about the same axis still grasps: the flat pads square the box
     let d = decide(
         &cracker,
