@@ -65,7 +65,8 @@ impl GraspObject {
     pub fn new(mesh: &Mesh) -> Result<Self, GraspError> {
         let hull = Self::with_kind(mesh, SolidKind::ConvexHull)?;
         if hull.concavity() > DECOMPOSE_ABOVE_CONCAVITY {
-            Self::with_kind(mesh, SolidKind::ConvexDecomposition)
+            // a decomposition that finds no parts leaves the (conservative) hull
+            Ok(Self::with_kind(mesh, SolidKind::ConvexDecomposition).unwrap_or(hull))
         } else {
             Ok(hull)
         }
