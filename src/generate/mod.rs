@@ -1,5 +1,7 @@
 //! (being built) The scene generator.
 
+pub mod plan;
+
 pub mod cli {
     /// Options of `pregrasp generate`.
     #[derive(Debug, clap::Args)]
