@@ -1,6 +1,7 @@
 //! (being built) The scene generator.
 
 pub mod plan;
+pub mod raster;
 
 pub mod cli {
     /// Options of `pregrasp generate`.
