@@ -33,6 +33,8 @@ pub const APPROACH_END_M: f64 = 0.5;
 pub const BASE_CLEARANCE_M: f64 = 0.35;
 /// Share of the frames over which the base drives; afterwards only the arm moves.
 pub const BASE_DRIVE_SHARE: f64 = 0.85;
+/// Sequences shorter than this never get a look-away stretch (it would swallow them).
+pub const MIN_FRAMES_FOR_LOOK_AWAY: u32 = 30;
 /// Look-away amplitude of the arm during an occlusion stretch, radians.
 pub const LOOK_AWAY_RAD: f64 = 65.0 * PI / 180.0;
 
@@ -227,7 +229,7 @@ pub fn robot_plan(target: &Point3<f64>, s: &RobotSettings, rng: &mut ChaCha8Rng)
     let lateral_freq = rng.random_range(0.8..1.6);
 
     let n = s.frames.max(1);
-    let look_away = n >= 10 && rng.random::<f64>() < s.look_away_probability;
+    let look_away = n >= MIN_FRAMES_FOR_LOOK_AWAY && rng.random::<f64>() < s.look_away_probability;
     let (la_start, la_len) = if look_away {
         let len = (n as f64 * rng.random_range(0.15..0.25)).round().max(6.0);
         let start = (n as f64 * rng.random_range(0.3..0.5)).round();
