@@ -167,6 +167,18 @@ impl Codebook {
         &self.codes[bin * k..(bin + 1) * k]
     }
 
+    /// The contract's entry point: renders with the GPU renderer (software Vulkan without a GPU).
+    pub fn load_or_build(
+        renderer: &crate::render::Renderer,
+        mesh: &Mesh,
+        grid: RotationGrid,
+        config: &CodebookConfig,
+        cache_dir: Option<&Path>,
+    ) -> Result<Self, TrackerError> {
+        let source = crate::tracker::codebook::RendererViews::new(renderer, mesh)?;
+        Self::load_or_build_with(&source, mesh, grid, config, cache_dir)
+    }
+
     /// Loads the cached codebook of this key, or builds it with `source` (and caches it).
     pub fn load_or_build_with(
         source: &dyn ViewSource,
@@ -518,6 +530,34 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
         build_seconds: 0.0,
         from_cache: true,
     })
+}
+
+/// The GPU renderer as a view source.
+pub struct RendererViews<'a> {
+    renderer: &'a crate::render::Renderer,
+    mesh: crate::render::MeshHandle,
+}
+
+impl<'a> RendererViews<'a> {
+    pub fn new(renderer: &'a crate::render::Renderer, mesh: &Mesh) -> Result<Self, TrackerError> {
+        let handle = renderer.upload_mesh(mesh).map_err(|e| TrackerError::Render(e.to_string()))?;
+        Ok(Self { renderer, mesh: handle })
+    }
+}
+
+impl ViewSource for RendererViews<'_> {
+    fn render(
+        &self,
+        intrinsics: &Intrinsics,
+        camera_from_object: &[Pose],
+    ) -> Result<Vec<(DepthImage, Option<ColorImage>)>, TrackerError> {
+        let clip = crate::render::ClipRange::new(0.01, 100.0).map_err(|e| TrackerError::Render(e.to_string()))?;
+        let views = self
+            .renderer
+            .render_views(&self.mesh, intrinsics, camera_from_object, clip)
+            .map_err(|e| TrackerError::Render(e.to_string()))?;
+        Ok(views.into_iter().map(|v| (v.depth, Some(v.color))).collect())
+    }
 }
 
 /// Rotation of a grid viewpoint, for callers that render templates themselves.
