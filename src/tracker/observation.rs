@@ -43,7 +43,7 @@ impl Default for ObservationConfig {
         Self {
             sigma: 0.06,
             loglik_floor: -12.0,
-            gate_similarity: 0.35,
+            gate_similarity: 0.55,
             depth_sigma: 0.15,
             depth_floor: -6.0,
         }
