@@ -49,6 +49,10 @@ pub const CLIP: ClipRange = ClipRange {
 };
 /// Smallest image side we generate, pixels.
 pub const MIN_IMAGE_SIDE_PX: u32 = 16;
+/// A random subset holds at most this many objects.
+pub const MAX_RANDOM_OBJECTS: usize = 5;
+/// Random subsets drawn before a layout error is reported.
+const LAYOUT_ATTEMPTS: usize = 20;
 /// Instance id of the first object in the rendered instance mask (the table and floor use 0).
 const FIRST_INSTANCE: u16 = 1;
 
@@ -201,8 +205,8 @@ fn models_info_ids(dir: &Path) -> BTreeMap<String, u32> {
 pub struct GenerateConfig {
     /// The pool of models.
     pub models: Vec<ModelSpec>,
-    /// Place every model of the pool; otherwise a random subset of 2 (or all, if fewer) up to
-    /// all of them.
+    /// Place every model of the pool; otherwise a random subset of 2 (or all, if fewer) to
+    /// [`MAX_RANDOM_OBJECTS`] of them.
     pub place_all: bool,
     /// The target object (must be placed); `None`: a random placed object.
     pub target: Option<String>,
@@ -385,30 +389,45 @@ fn floor_tile(dark: bool) -> Mesh {
 fn prepare<'a>(renderer: &Renderer, config: &'a GenerateConfig, seed: u64) -> Result<Prepared<'a>> {
     config.validate()?;
     let intrinsics = plan::generated_intrinsics(config.width, config.height)?;
-    // which objects, which target
+    // which objects, which target; a random subset that does not fit is drawn again
     let mut rng = ChaCha8Rng::seed_from_u64(stream_seed(seed, &[b"objects"]));
+    let mut place_rng = ChaCha8Rng::seed_from_u64(stream_seed(seed, &[b"placement"]));
     let n = config.models.len();
-    let mut chosen: Vec<usize> = (0..n).collect();
-    if !config.place_all {
-        chosen.shuffle(&mut rng);
-        let k = rng.random_range(n.min(2)..=n);
-        chosen.truncate(k);
-        chosen.sort_unstable();
-    }
-    let target_index = match &config.target {
-        Some(t) => {
-            let i = config.models.iter().position(|m| &m.name == t).unwrap_or(0);
-            if !chosen.contains(&i) {
-                chosen.push(i);
-                chosen.sort_unstable();
-            }
-            i
-        }
-        None => chosen[rng.random_range(0..chosen.len())],
-    };
     let meshes: Vec<&Mesh> = config.models.iter().map(|m| &m.mesh).collect();
-    let mut rng = ChaCha8Rng::seed_from_u64(stream_seed(seed, &[b"placement"]));
-    let placed = plan::place_objects(&meshes, &chosen, &mut rng).map_err(GenerateError::Layout)?;
+    let wanted_target = config
+        .target
+        .as_ref()
+        .and_then(|t| config.models.iter().position(|m| &m.name == t));
+    let attempts = if config.place_all { 1 } else { LAYOUT_ATTEMPTS };
+    let mut last_error = String::new();
+    let mut layout = None;
+    for _ in 0..attempts {
+        let mut chosen: Vec<usize> = (0..n).collect();
+        if !config.place_all {
+            chosen.shuffle(&mut rng);
+            let k = rng.random_range(n.min(2)..=n.min(MAX_RANDOM_OBJECTS));
+            chosen.truncate(k);
+        }
+        let target_index = match wanted_target {
+            Some(i) => {
+                if !chosen.contains(&i) {
+                    chosen.pop();
+                    chosen.push(i);
+                }
+                i
+            }
+            None => chosen[rng.random_range(0..chosen.len())],
+        };
+        chosen.sort_unstable();
+        match plan::place_objects(&meshes, &chosen, &mut place_rng) {
+            Ok(placed) => {
+                layout = Some((placed, target_index));
+                break;
+            }
+            Err(e) => last_error = e,
+        }
+    }
+    let (placed, target_index) = layout.ok_or(GenerateError::Layout(last_error))?;
     let models: Vec<&ModelSpec> = placed.iter().map(|p| &config.models[p.model]).collect();
     let world_from_object: Vec<Pose> = placed.iter().map(|p| p.world_from_object).collect();
     let target_pos = placed
