@@ -347,6 +347,9 @@ impl GeneratedSequence {
     }
 }
 
+/// Per frame id: capture stamp and `world_from_camera`.
+type FramePoses = BTreeMap<u32, (i64, Pose)>;
+
 /// Everything decided before rendering.
 struct Prepared<'a> {
     config: &'a GenerateConfig,
@@ -357,7 +360,7 @@ struct Prepared<'a> {
     world_from_object: Vec<Pose>,
     scene: Vec<SceneObject>,
     /// Per camera: intrinsics, and per frame id the stamp and `world_from_camera`.
-    cameras: BTreeMap<String, (Intrinsics, BTreeMap<u32, (i64, Pose)>)>,
+    cameras: BTreeMap<String, (Intrinsics, FramePoses)>,
     odometry: BTreeMap<u32, OdometrySample>,
     world_from_base_true: BTreeMap<u32, Pose>,
     look_away_frames: Vec<u32>,
