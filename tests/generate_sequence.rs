@@ -171,12 +171,13 @@ fn files_of(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
     let mut out = Vec::new();
     let mut stack = vec![dir.to_path_buf()];
     while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
+        for e in std::fs::read_dir(&d).expect("readable output folder") {
+            let p = e.expect("readable folder entry").path();
             if p.is_dir() {
                 stack.push(p);
             } else {
-                out.push((p.strip_prefix(dir).unwrap().to_path_buf(), std::fs::read(&p).unwrap()));
+                let rel = p.strip_prefix(dir).expect("inside the folder").to_path_buf();
+                out.push((rel, std::fs::read(&p).expect("readable file")));
             }
         }
     }

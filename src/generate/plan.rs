@@ -455,7 +455,8 @@ mod tests {
                 if plan.look_away_frames.contains(&(k as u32)) {
                     // the target's centre projects at least 60 px outside the image
                     let uv = k640.project(&in_cam);
-                    let outside = uv.is_none_or(|[u, v]| !(-60.0..=700.0).contains(&u) || !(-60.0..=540.0).contains(&v));
+                    let outside =
+                        uv.is_none_or(|[u, v]| !(-60.0..=700.0).contains(&u) || !(-60.0..=540.0).contains(&v));
                     assert!(outside, "frame {k}: target at {uv:?} while looking away");
                 } else if plan.look_away_frames.iter().all(|&f| (f as i64 - k as i64).abs() > 4) {
                     // (the pan ramps over 3 frames on either side of the reported stretch)

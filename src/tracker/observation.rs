@@ -166,13 +166,15 @@ pub fn match_codes(codebook: &Codebook, codes: &[f32], n: usize, out: &mut Vec<f
         return;
     }
     let qt = DMatrixView::from_slice_with_strides(codes, n, kd, kd, 1);
-    out.par_chunks_mut(MATCH_CHUNK_BINS * n).enumerate().for_each(|(c, chunk)| {
-        let b0 = c * MATCH_CHUNK_BINS;
-        let len = chunk.len() / n;
-        let cv = DMatrixView::from_slice(&codebook.codes[b0 * kd..(b0 + len) * kd], kd, len);
-        let mut sv = DMatrixViewMut::from_slice(chunk, n, len);
-        sv.gemm(1.0, &qt, &cv, 0.0);
-    });
+    out.par_chunks_mut(MATCH_CHUNK_BINS * n)
+        .enumerate()
+        .for_each(|(c, chunk)| {
+            let b0 = c * MATCH_CHUNK_BINS;
+            let len = chunk.len() / n;
+            let cv = DMatrixView::from_slice(&codebook.codes[b0 * kd..(b0 + len) * kd], kd, len);
+            let mut sv = DMatrixViewMut::from_slice(chunk, n, len);
+            sv.gemm(1.0, &qt, &cv, 0.0);
+        });
 }
 
 /// The evidence of one view for particles at `positions_in_view_m`, or `None` when the view
@@ -226,7 +228,12 @@ pub fn observe_view(
             }
         }
     });
-    let max_score = score.iter().zip(&valid).filter(|(_, v)| **v).map(|(s, _)| *s).fold(0.0f32, f32::max);
+    let max_score = score
+        .iter()
+        .zip(&valid)
+        .filter(|(_, v)| **v)
+        .map(|(s, _)| *s)
+        .fold(0.0f32, f32::max);
     let kd = -0.5 / (config.depth_sigma * config.depth_sigma);
     let depth_log: Vec<f32> = score
         .iter()
