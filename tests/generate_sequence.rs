@@ -39,6 +39,7 @@ fn args(out: &Path) -> Args {
         targets: vec![],
         frame_period_ms: 100.0,
         look_away_probability: 0.5,
+        occluder_probability: 0.0,
     }
 }
 
@@ -283,6 +284,50 @@ fn odometry_drifts_while_localisation_stays_within_its_bound() {
     let img = &g.images["robot"][&0];
     assert_eq!((img.depth.width, img.depth.height), (32, 24));
     assert_eq!(img.masks.len(), 2);
+}
+
+#[test]
+fn an_occluder_box_hides_the_target_from_the_robot_camera_for_a_stretch() {
+    let models = load_models(None, &[]).unwrap();
+    let mut config = GenerateConfig::new(models);
+    config.frames = 40;
+    config.width = 64;
+    config.height = 48;
+    config.look_away_probability = 0.0;
+    config.occluder_probability = 1.0;
+    let mut placed_occluders = 0;
+    for seed in 0..8u64 {
+        config.target = Some(["box", "can", "mug"][seed as usize % 3].to_string());
+        let g = generate_sequence(renderer(), &config, seed).unwrap();
+        let Some((_, size)) = g.occluder else {
+            eprintln!("seed {seed}: no room for the occluder");
+            continue;
+        };
+        let rig = &g.sequence.rig;
+        let ti = rig
+            .objects
+            .iter()
+            .position(|o| Some(&o.name) == rig.target.as_ref())
+            .unwrap();
+        let robot = g.sequence.camera("robot").unwrap();
+        let fract: Vec<f64> = (0..40u32).map(|f| robot.gt_info[&f][ti].visib_fract.unwrap()).collect();
+        let in_view = |f: u32| robot.gt_info[&f][ti].px_count_all.unwrap() > 0;
+        let hidden = (0..40u32).filter(|&f| in_view(f) && fract[f as usize] < 0.1).count();
+        eprintln!("seed {seed}: occluder {size:.2?}, hidden in {hidden} frames, visible fractions {fract:.2?}");
+        assert!(
+            hidden >= 3,
+            "seed {seed}: the occluder hides the target in only {hidden} frames"
+        );
+        assert!(
+            fract[35..].iter().any(|f| *f > 0.3),
+            "seed {seed}: the target never reappears"
+        );
+        placed_occluders += 1;
+    }
+    assert!(
+        placed_occluders >= 3,
+        "only {placed_occluders} of 8 sequences had room for the occluder"
+    );
 }
 
 #[test]

@@ -223,6 +223,10 @@ pub struct GenerateConfig {
     pub localisation_sigma: LocalisationSigma,
     /// Probability that the robot camera looks away from the target for a stretch of frames.
     pub look_away_probability: f64,
+    /// Probability that a box (rendered, not tracked) stands on the table between the target
+    /// and the robot camera's path, hiding the target from the robot camera for a stretch
+    /// (skipped when it does not fit between the objects).
+    pub occluder_probability: f64,
     /// Write colour images and visible masks as well as depth.
     pub write_rgb: bool,
     pub write_masks: bool,
@@ -247,6 +251,7 @@ impl GenerateConfig {
                 rotation_rad: 0.009,
             },
             look_away_probability: 0.5,
+            occluder_probability: 0.0,
             write_rgb: true,
             write_masks: true,
         }
@@ -283,6 +288,14 @@ impl GenerateConfig {
                 self.stagger_ms,
                 self.frame_period_ms / 2.0
             ));
+        }
+        for (what, p) in [
+            ("look-away", self.look_away_probability),
+            ("occluder", self.occluder_probability),
+        ] {
+            if !(0.0..=1.0).contains(&p) {
+                return bad(format!("{what} probability {p} must lie in [0, 1]"));
+            }
         }
         if self.odometry_noise_alpha.iter().any(|a| !a.is_finite() || *a < 0.0) {
             return bad("odometry noise alphas must be finite and >= 0".into());
@@ -329,6 +342,8 @@ pub struct GeneratedSequence {
     pub world_from_base_true: BTreeMap<u32, Pose>,
     /// Frames in which the robot camera looks away from the target.
     pub look_away_frames: Vec<u32>,
+    /// The occluder box, if any: `world_from_box` and its size (x, y, z), metres.
+    pub occluder: Option<(Pose, [f64; 3])>,
 }
 
 impl GeneratedSequence {
@@ -364,6 +379,7 @@ struct Prepared<'a> {
     odometry: BTreeMap<u32, OdometrySample>,
     world_from_base_true: BTreeMap<u32, Pose>,
     look_away_frames: Vec<u32>,
+    occluder: Option<(Pose, [f64; 3])>,
 }
 
 fn table_mesh() -> Mesh {
@@ -519,7 +535,25 @@ fn prepare<'a>(renderer: &Renderer, config: &'a GenerateConfig, seed: u64) -> Re
         }),
     };
 
-    // the scene to render: objects first (instance ids from 1), then table and floor (id 0)
+    let mut rng = ChaCha8Rng::seed_from_u64(stream_seed(seed, &[b"occluder"]));
+    let occluder = if rng.random::<f64>() < config.occluder_probability {
+        let target_placed = placed
+            .iter()
+            .find(|p| p.model == target_index)
+            .ok_or_else(|| GenerateError::Layout("the target was not placed".into()))?;
+        let robot_eyes: Vec<Point3<f64>> = robot
+            .world_from_base
+            .iter()
+            .zip(&robot.base_from_camera)
+            .map(|(b, c)| Point3::from((b * c).translation.vector))
+            .collect();
+        plan::place_occluder(&meshes, &placed, target_placed, &robot_eyes, &mut rng)
+    } else {
+        None
+    };
+
+    // the scene to render: objects first (instance ids from 1), then table, occluder and floor
+    // (id 0: not tracked)
     let mut scene = Vec::new();
     for (i, (m, wfo)) in models.iter().zip(&world_from_object).enumerate() {
         scene.push(SceneObject {
@@ -533,6 +567,13 @@ fn prepare<'a>(renderer: &Renderer, config: &'a GenerateConfig, seed: u64) -> Re
         world_from_object: translation(0.0, 0.0, -plan::TABLE_THICKNESS_M / 2.0),
         instance_id: 0,
     });
+    if let Some((pose, size)) = &occluder {
+        scene.push(SceneObject {
+            mesh: renderer.upload_mesh(&mesh::builtin_box(*size, [[60, 110, 170], [200, 200, 200]]))?,
+            world_from_object: *pose,
+            instance_id: 0,
+        });
+    }
     let tiles: [MeshHandle; 2] = [
         renderer.upload_mesh(&floor_tile(false))?,
         renderer.upload_mesh(&floor_tile(true))?,
@@ -570,6 +611,7 @@ fn prepare<'a>(renderer: &Renderer, config: &'a GenerateConfig, seed: u64) -> Re
         odometry,
         world_from_base_true,
         look_away_frames: robot.look_away_frames,
+        occluder,
     })
 }
 
@@ -735,6 +777,7 @@ pub fn generate_sequence(renderer: &Renderer, config: &GenerateConfig, seed: u64
         images: images.into_inner().unwrap_or_else(|e| e.into_inner()),
         world_from_base_true: prep.world_from_base_true.clone(),
         look_away_frames: prep.look_away_frames.clone(),
+        occluder: prep.occluder,
     })
 }
 
