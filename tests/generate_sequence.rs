@@ -10,6 +10,7 @@ use pregrasp::generate::{GenerateConfig, GenerateError, generate_sequence, load_
 use pregrasp::geometry::Pose;
 use pregrasp::mesh::Mesh;
 use pregrasp::render::Renderer;
+use pregrasp::tracker::CameraMount;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
@@ -280,6 +281,22 @@ fn odometry_drifts_while_localisation_stays_within_its_bound() {
             .norm();
         assert!(d > 2.0 && d < 4.0, "{cam} {d} m from the table centre");
     }
+    // the tracker's view of it: mounts, frames by capture time, odometry
+    let mounts = g.camera_mounts();
+    assert_eq!(mounts.len(), 3);
+    assert!(matches!(mounts["robot"], CameraMount::Robot { .. }));
+    assert!(matches!(mounts["ext1"], CameraMount::Stationary { .. }));
+    let frames = g.camera_frames(0, 1);
+    assert_eq!(frames.len(), 3);
+    assert!(frames.windows(2).all(|w| w[0].stamp_ns <= w[1].stamp_ns));
+    let names: Vec<&str> = g.sequence.rig.objects.iter().map(|o| o.name.as_str()).collect();
+    let dets: Vec<_> = (0..60)
+        .flat_map(|f| g.camera_frames(f, 1))
+        .flat_map(|c| c.detections)
+        .collect();
+    assert!(dets.len() > 100 && dets.iter().all(|d| names.contains(&d.object.as_str())));
+    assert_eq!(g.robot_odometry(5).unwrap().odom_from_base, odo[&5].odom_from_base);
+    assert!(g.robot_odometry(60).is_none());
     // in-memory images match the metadata
     let img = &g.images["robot"][&0];
     assert_eq!((img.depth.width, img.depth.height), (32, 24));

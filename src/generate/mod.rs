@@ -27,6 +27,7 @@ use crate::dataset::{
 use crate::geometry::Pose;
 use crate::mesh::{self, Mesh, MeshError};
 use crate::render::{ClipRange, MeshHandle, RenderError, Renderer, SceneObject};
+use crate::tracker::{CameraFrame, CameraMount, RobotOdometry};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
@@ -347,6 +348,71 @@ pub struct GeneratedSequence {
 }
 
 impl GeneratedSequence {
+    /// What the tracker may know of the rig: the stationary cameras' calibration and the robot
+    /// camera's arm pose at the first frame (later ones come with [`Self::robot_odometry`]).
+    pub fn camera_mounts(&self) -> BTreeMap<String, CameraMount> {
+        let mut out = BTreeMap::new();
+        for (name, cam) in &self.sequence.rig.cameras {
+            let mount = match cam.mount {
+                Mount::Robot => {
+                    let Some(first) = self.sequence.odometry.as_ref().and_then(|o| o.values().next()) else {
+                        continue;
+                    };
+                    CameraMount::Robot {
+                        base_from_camera: first.base_from_camera,
+                    }
+                }
+                Mount::Stationary => {
+                    let world_from_camera = self
+                        .sequence
+                        .cameras
+                        .get(name)
+                        .and_then(|c| c.frames.values().next())
+                        .and_then(|f| f.camera_from_world)
+                        .map(|p| p.inverse())
+                        .unwrap_or_else(Pose::identity);
+                    CameraMount::Stationary { world_from_camera }
+                }
+            };
+            out.insert(name.clone(), mount);
+        }
+        out
+    }
+
+    /// One time step as the tracker takes it: every camera's noisy depth, colour and stand-in
+    /// detections ([`Sequence::detections`] with `detection_seed`), sorted by capture time.
+    pub fn camera_frames(&self, frame: u32, detection_seed: u64) -> Vec<CameraFrame> {
+        let mut out: Vec<CameraFrame> = self
+            .images
+            .iter()
+            .filter_map(|(cam, frames)| {
+                let img = frames.get(&frame)?;
+                let meta = self.sequence.cameras.get(cam)?.frames.get(&frame)?;
+                Some(CameraFrame {
+                    camera: cam.clone(),
+                    stamp_ns: meta.stamp_ns,
+                    intrinsics: meta.intrinsics,
+                    depth: img.depth.clone(),
+                    color: Some(img.color.clone()),
+                    detections: self.sequence.detections(cam, frame, detection_seed),
+                })
+            })
+            .collect();
+        out.sort_by_key(|f| f.stamp_ns);
+        out
+    }
+
+    /// The robot's odometry at a time step (no ground truth in it).
+    pub fn robot_odometry(&self, frame: u32) -> Option<RobotOdometry> {
+        let o = self.sequence.odometry.as_ref()?.get(&frame)?;
+        Some(RobotOdometry {
+            stamp_ns: o.stamp_ns,
+            odom_from_base: o.odom_from_base,
+            world_from_odom: o.world_from_odom,
+            base_from_camera: o.base_from_camera,
+        })
+    }
+
     /// Writes the sequence into `dir` (created; meshes into `dir/models/`).
     pub fn write(&self, dir: &Path) -> Result<()> {
         let mut seq = self.sequence.clone();
