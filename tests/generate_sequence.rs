@@ -106,7 +106,11 @@ fn median(v: &mut [f64]) -> f64 {
 fn generated_ground_truth_agrees_with_its_own_depth() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("gen");
-    run(args(&out)).unwrap();
+    // exactly the command (full 640x480 images)
+    let mut a = args(&out);
+    a.width = 640;
+    a.height = 480;
+    run(a).unwrap();
     let roots = find_sequences(&out).unwrap();
     assert_eq!(roots.len(), 1);
     let seq = Sequence::open(&roots[0]).unwrap();
