@@ -22,7 +22,7 @@
 
 use crate::geometry::{Pose, PoseSamples};
 use crate::mesh::Mesh;
-use crate::tracker::bins::{GridTables, add_pulled, blur, gaussian_kernel};
+use crate::tracker::bins::{GridTables, add_pulled, blur, fast_exp, gaussian_kernel};
 use crate::tracker::codebook::Codebook;
 use crate::tracker::estimate::{EstimateConfig, ParticleSet, summarise_rotation};
 use crate::tracker::motion::{OdometryNoise, brownian, move_with_odometry};
@@ -474,7 +474,7 @@ impl Tracker {
                             object: det.object.clone(),
                             status: TrackStatus::Initialising,
                             stamp_ns: self.stamp_ns,
-                            best_similarity: f64::NAN,
+                            best_similarity: None,
                             weak_steps: 0,
                             seen_by: Vec::new(),
                         });
@@ -638,7 +638,7 @@ impl Tracker {
         let track = &mut self.tracks[ti];
         track.stamp_ns = self.stamp_ns;
         track.seen_by = seen_by.clone();
-        track.best_similarity = if best.is_finite() { best as f64 } else { f64::NAN };
+        track.best_similarity = best.is_finite().then_some(best as f64);
         let had_evidence = !seen_by.is_empty();
         if had_evidence {
             let s = &mut self.states[ti];
@@ -656,7 +656,7 @@ impl Tracker {
                     for (k, (hrow, frow)) in hc.chunks_mut(n).zip(fc.chunks(n)).enumerate() {
                         let floor = floor_rel * tables.volume(c * 1024 + k) as f32;
                         for p in 0..n {
-                            let v = hrow[p].max(floor) * (frow[p] - fmax[p]).exp();
+                            let v = hrow[p].max(floor) * fast_exp(frow[p] - fmax[p]);
                             hrow[p] = v;
                             acc[p] += v as f64;
                         }

@@ -121,8 +121,8 @@ pub struct Track {
     pub status: TrackStatus,
     /// Stamp of the last step that updated the track.
     pub stamp_ns: i64,
-    /// Best absolute cosine similarity of the last step over all views (NaN when unseen).
-    pub best_similarity: f64,
+    /// Best absolute cosine similarity of the last step over all views (None when unseen).
+    pub best_similarity: Option<f64>,
     /// Steps in a row whose evidence was below the lost threshold.
     pub weak_steps: u32,
     /// Cameras that gave evidence in the last step.

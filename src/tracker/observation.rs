@@ -32,8 +32,8 @@ pub struct ObservationConfig {
     pub loglik_floor: f32,
     /// A view whose best absolute similarity is below this does not see the object.
     pub gate_similarity: f32,
-    /// Sigma of the depth-consistency term (on `score / max score`).
-    pub depth_sigma: f32,
+    /// Sigma (m) of the depth check at 1 m; it grows linearly with the distance.
+    pub depth_sigma_m: f32,
     /// Lowest log term of the depth check per view.
     pub depth_floor: f32,
 }
@@ -44,7 +44,7 @@ impl Default for ObservationConfig {
             sigma: 0.06,
             loglik_floor: -12.0,
             gate_similarity: 0.55,
-            depth_sigma: 0.15,
+            depth_sigma_m: 0.015,
             depth_floor: -6.0,
         }
     }
@@ -75,7 +75,8 @@ pub struct ViewImage<'a> {
 }
 
 /// Crops and codes of particles at `positions_in_view_m`; returns (codes row-major `n x k`
-/// unit rows, valid flags, depth scores, crop seconds, encoding seconds).
+/// unit rows, valid flags, central median normalised depth (NaN: none), crop seconds,
+/// encoding seconds).
 pub fn encode_particles(
     codebook: &Codebook,
     view: &ViewImage,
@@ -111,22 +112,11 @@ pub fn encode_particles(
             };
             let share = sample_crop(&layout, view.depth, view.color, &params, &mut x, &mut m);
             // depth consistency (below) reads the raw cells; the encoder gets inpainted ones
-            let raw: Vec<(f32, bool)> = x[..f * f].iter().copied().zip(m[..f * f].iter().copied()).collect();
+            let raw_x = x[..f * f].to_vec();
+            let raw_m = m[..f * f].to_vec();
             crate::tracker::encoder::inpaint_depth(&layout, &mut x, &mut m, view.color.is_some());
-            // depth consistency: share of the central cells whose depth lies inside the box
-            let (mut inside, mut total) = (0usize, 0usize);
-            for i in f / 4..f - f / 4 {
-                for j in f / 4..f - f / 4 {
-                    let c = i * f + j;
-                    if !raw[c].1 {
-                        total += 1;
-                        if raw[c].0 > 0.0 && raw[c].0 < 1.0 {
-                            inside += 1;
-                        }
-                    }
-                }
-            }
-            let score = if total > 0 { inside as f32 / total as f32 } else { 0.0 };
+            // depth check input: the central surface of the raw crop
+            let score = crate::tracker::encoder::central_median_depth(&layout, &raw_x, &raw_m).unwrap_or(f32::NAN);
             (x, m, share >= MIN_VALID_SHARE, score)
         })
         .collect();
@@ -194,20 +184,41 @@ pub fn observe_view(
     match_codes(codebook, &codes, n, sim);
     let matching_s = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
-    let best = sim
+    // best similarity of the view, and each particle's best bin
+    let (best, arg) = sim
         .par_chunks(n * 1024)
-        .map(|c| {
-            let mut m = f32::NEG_INFINITY;
-            for row in c.chunks(n) {
-                for (v, ok) in row.iter().zip(&valid) {
-                    if *ok && *v > m {
-                        m = *v;
+        .enumerate()
+        .map(|(c, chunk)| {
+            let mut m = vec![f32::NEG_INFINITY; n];
+            let mut a = vec![0usize; n];
+            for (r, row) in chunk.chunks(n).enumerate() {
+                for p in 0..n {
+                    if row[p] > m[p] {
+                        m[p] = row[p];
+                        a[p] = c * 1024 + r;
                     }
                 }
             }
-            m
+            (m, a)
         })
-        .reduce(|| f32::NEG_INFINITY, f32::max);
+        .reduce(
+            || (vec![f32::NEG_INFINITY; n], vec![0usize; n]),
+            |(mut m1, mut a1), (m2, a2)| {
+                for p in 0..n {
+                    if m2[p] > m1[p] {
+                        m1[p] = m2[p];
+                        a1[p] = a2[p];
+                    }
+                }
+                (m1, a1)
+            },
+        );
+    let best = best
+        .iter()
+        .zip(&valid)
+        .filter(|(_, v)| **v)
+        .map(|(b, _)| *b)
+        .fold(f32::NEG_INFINITY, f32::max);
     if !(best >= config.gate_similarity) {
         return None;
     }
@@ -226,18 +237,20 @@ pub fn observe_view(
             }
         }
     });
-    let max_score = score.iter().zip(&valid).filter(|(_, v)| **v).map(|(s, _)| *s).fold(0.0f32, f32::max);
-    let kd = -0.5 / (config.depth_sigma * config.depth_sigma);
-    let depth_log: Vec<f32> = score
-        .iter()
-        .zip(&valid)
-        .map(|(s, v)| {
-            if !*v || max_score <= 0.0 {
-                config.depth_floor
-            } else {
-                let r = 1.0 - s / max_score;
-                (kd * r * r).max(config.depth_floor)
+    // depth check (PoseRBPF renders at the mean pose; we compare the crop's central surface
+    // depth with that of the particle's best template): error (m) = (observed - template) * box
+    let n_inplane = codebook.grid.n_inplane();
+    let box_m = codebook.box_m() as f32;
+    let depth_log: Vec<f32> = (0..n)
+        .map(|p| {
+            let tmpl = codebook.median_depth_norm[arg[p] / n_inplane];
+            let obs = score[p];
+            if !valid[p] || !obs.is_finite() || !tmpl.is_finite() {
+                return config.depth_floor;
             }
+            let err_m = (obs - tmpl) * box_m;
+            let sigma = config.depth_sigma_m * (positions_in_view_m[p].z as f32).max(0.3);
+            (-0.5 * err_m * err_m / (sigma * sigma)).max(config.depth_floor)
         })
         .collect();
     let likelihoods_s = t1.elapsed().as_secs_f64();
