@@ -2,6 +2,8 @@
 //! (the data set's `bbox_visib`, used only to start the track) with a coarse codebook built from
 //! its mesh alone. The ground truth is read only to score the result.
 
+#![allow(clippy::unwrap_used)] // test helpers: a failure is a test failure
+
 use nalgebra::Point3;
 use pregrasp::camera::{ColorImage, DepthImage, Intrinsics};
 use pregrasp::geometry::{Pose, RotationGrid, pose_from_rt};
@@ -41,18 +43,33 @@ fn real_mug_is_tracked_from_its_detection_box() {
     let grid = RotationGrid::new(10).unwrap();
     let cb = Arc::new(Codebook::build(&CpuViews(&mesh), &mesh, grid, &CodebookConfig::coarse()).unwrap());
     let mut cams = BTreeMap::new();
-    cams.insert("cam".to_string(), CameraMount::Stationary { world_from_camera: Pose::identity() });
+    cams.insert(
+        "cam".to_string(),
+        CameraMount::Stationary {
+            world_from_camera: Pose::identity(),
+        },
+    );
     let mut tracker = Tracker::new(TrackerConfig::default(), cams, "cam".into());
     tracker.add_object_model("025_mug", mesh.clone(), cb);
-    let mut frames: Vec<u32> = scene_camera.as_object().unwrap().keys().map(|k| k.parse().unwrap()).collect();
+    let mut frames: Vec<u32> = scene_camera
+        .as_object()
+        .unwrap()
+        .keys()
+        .map(|k| k.parse().unwrap())
+        .collect();
     frames.sort_unstable();
-    let pts: Vec<Point3<f64>> = (0..mesh.vertices_m.len() as u32).step_by(3).map(|i| mesh.vertex(i)).collect();
+    let pts: Vec<Point3<f64>> = (0..mesh.vertices_m.len() as u32)
+        .step_by(3)
+        .map(|i| mesh.vertex(i))
+        .collect();
     let mut last = (f64::NAN, f64::NAN);
     for (i, f) in frames.iter().enumerate() {
         let key = f.to_string();
         let sc = &scene_camera[&key];
         let k: [f64; 9] = f64s(&sc["cam_K"]).try_into().unwrap();
-        let depth_png = image::open(cam.join(format!("depth/{f:06}.png"))).unwrap().into_luma16();
+        let depth_png = image::open(cam.join(format!("depth/{f:06}.png")))
+            .unwrap()
+            .into_luma16();
         let (w, h) = depth_png.dimensions();
         let intrinsics = Intrinsics::new(w, h, k).unwrap();
         let depth = DepthImage::from_u16_mm(w, h, depth_png.as_raw(), sc["depth_scale"].as_f64().unwrap()).unwrap();
@@ -96,10 +113,18 @@ fn real_mug_is_tracked_from_its_detection_box() {
             / pts.len() as f64;
         eprintln!(
             "frame {f}: err vec {:?} translation error {t_err:.4} m, ADD-S {add_s:.4} m, rotation error {:.1} deg, entropy {:.2}, modes {:?}, sim {:?}",
-            (est.translation.vector - truth.translation.vector).as_slice().iter().map(|v| (v * 1000.0).round() / 1000.0).collect::<Vec<_>>(),
+            (est.translation.vector - truth.translation.vector)
+                .as_slice()
+                .iter()
+                .map(|v| (v * 1000.0).round() / 1000.0)
+                .collect::<Vec<_>>(),
             est.rotation.angle_to(&truth.rotation).to_degrees(),
             e.rotation_entropy,
-            e.rotation_modes.iter().take(4).map(|m| (m.mass * 100.0).round() / 100.0).collect::<Vec<_>>(),
+            e.rotation_modes
+                .iter()
+                .take(4)
+                .map(|m| (m.mass * 100.0).round() / 100.0)
+                .collect::<Vec<_>>(),
             tracker.tracks()[0].best_similarity
         );
         last = (t_err, add_s);

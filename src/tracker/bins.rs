@@ -346,7 +346,17 @@ mod tests {
         });
         assert!(h[w * n_p + 1] > 0.01);
         let c = h[b * n_p + 1];
-        assert!((h[w * n_p + 1] - h[grid.flat(crate::geometry::BinIndex { elevation: 3, azimuth: 1, inplane: 1 }) * n_p + 1]).abs() < 1e-6);
+        assert!(
+            (h[w * n_p + 1]
+                - h[grid.flat(crate::geometry::BinIndex {
+                    elevation: 3,
+                    azimuth: 1,
+                    inplane: 1
+                }) * n_p
+                    + 1])
+                .abs()
+                < 1e-6
+        );
         assert!(c > h[w * n_p + 1]);
     }
 }

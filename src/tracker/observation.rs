@@ -156,13 +156,15 @@ pub fn match_codes(codebook: &Codebook, codes: &[f32], n: usize, out: &mut Vec<f
         return;
     }
     let qt = DMatrixView::from_slice_with_strides(codes, n, kd, kd, 1);
-    out.par_chunks_mut(MATCH_CHUNK_BINS * n).enumerate().for_each(|(c, chunk)| {
-        let b0 = c * MATCH_CHUNK_BINS;
-        let len = chunk.len() / n;
-        let cv = DMatrixView::from_slice(&codebook.codes[b0 * kd..(b0 + len) * kd], kd, len);
-        let mut sv = DMatrixViewMut::from_slice(chunk, n, len);
-        sv.gemm(1.0, &qt, &cv, 0.0);
-    });
+    out.par_chunks_mut(MATCH_CHUNK_BINS * n)
+        .enumerate()
+        .for_each(|(c, chunk)| {
+            let b0 = c * MATCH_CHUNK_BINS;
+            let len = chunk.len() / n;
+            let cv = DMatrixView::from_slice(&codebook.codes[b0 * kd..(b0 + len) * kd], kd, len);
+            let mut sv = DMatrixViewMut::from_slice(chunk, n, len);
+            sv.gemm(1.0, &qt, &cv, 0.0);
+        });
 }
 
 /// The evidence of one view for particles at `positions_in_view_m`, or `None` when the view
@@ -219,7 +221,7 @@ pub fn observe_view(
         .filter(|(_, v)| **v)
         .map(|(b, _)| *b)
         .fold(f32::NEG_INFINITY, f32::max);
-    if !(best >= config.gate_similarity) {
+    if best.is_nan() || best < config.gate_similarity {
         return None;
     }
     let inv = 1.0 / best;
