@@ -376,8 +376,8 @@ impl Tracker {
             if s.n() > 0 {
                 let grid = self.models[s.model].tables.grid;
                 let n = s.n();
+                // the blur preserves each histogram's mass: no renormalisation needed
                 blur(&grid, &mut s.hist, n, &kernel, &mut self.scratch);
-                normalise_columns(&mut s.hist, n);
             }
         }
         report.timings.blur_s += t0.elapsed().as_secs_f64();
@@ -697,16 +697,17 @@ impl Tracker {
                 .zip(fused.par_chunks(n * 1024))
                 .enumerate()
                 .map(|(c, (hc, fc))| {
-                    let mut acc = vec![0f64; n];
+                    // f32 sums over 1,024 bins, f64 across chunks
+                    let mut acc = vec![0f32; n];
                     for (k, (hrow, frow)) in hc.chunks_mut(n).zip(fc.chunks(n)).enumerate() {
                         let floor = floor_rel * tables.volume(c * 1024 + k) as f32;
-                        for p in 0..n {
-                            let v = hrow[p].max(floor) * fast_exp(frow[p] - fmax[p]);
-                            hrow[p] = v;
-                            acc[p] += v as f64;
+                        for (((h, f), m), a) in hrow.iter_mut().zip(frow).zip(&fmax).zip(acc.iter_mut()) {
+                            let v = h.max(floor) * fast_exp(f - m);
+                            *h = v;
+                            *a += v;
                         }
                     }
-                    acc
+                    acc.into_iter().map(f64::from).collect::<Vec<f64>>()
                 })
                 .reduce(
                     || vec![0f64; n],
@@ -880,39 +881,6 @@ fn normalise(w: &mut [f64]) {
         let u = 1.0 / w.len().max(1) as f64;
         w.fill(u);
     }
-}
-
-/// Each particle's histogram (a column of the bin-major layout) rescaled to sum to 1.
-fn normalise_columns(h: &mut [f32], n: usize) {
-    let sums = h
-        .par_chunks(n * 1024)
-        .map(|c| {
-            let mut acc = vec![0f64; n];
-            for row in c.chunks(n) {
-                for (a, v) in acc.iter_mut().zip(row) {
-                    *a += *v as f64;
-                }
-            }
-            acc
-        })
-        .reduce(
-            || vec![0f64; n],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    *x += y;
-                }
-                a
-            },
-        );
-    let inv: Vec<f32> = sums
-        .iter()
-        .map(|s| if *s > 0.0 { (1.0 / s) as f32 } else { 0.0 })
-        .collect();
-    h.par_chunks_mut(n).for_each(|row| {
-        for (v, i) in row.iter_mut().zip(&inv) {
-            *v *= i;
-        }
-    });
 }
 
 fn column_max(h: &[f32], n: usize) -> Vec<f32> {
