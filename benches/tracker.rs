@@ -122,8 +122,33 @@ fn codebook(mesh: &Mesh) -> Arc<Codebook> {
     Arc::new(cb)
 }
 
+fn coarse_build_times(mesh: &Mesh) {
+    let grid = RotationGrid::new(10).expect("10 divides 180");
+    for (name, cfg) in [
+        ("default features", CodebookConfig::default()),
+        ("coarse features", CodebookConfig::coarse()),
+    ] {
+        let t0 = Instant::now();
+        let renderer = pregrasp::render::Renderer::new().ok();
+        let cb = match renderer.as_ref().and_then(|r| RendererViews::new(r, mesh).ok()) {
+            Some(src) => Codebook::build(&src, mesh, grid, &cfg),
+            None => Codebook::build(&CpuViews(mesh), mesh, grid, &cfg),
+        }
+        .expect("coarse codebook");
+        eprintln!(
+            "codebook 10-degree grid, {name}: {} bins built in {:.2} s (wall incl. renderer start {:.2} s)",
+            cb.n_bins(),
+            cb.build_seconds,
+            t0.elapsed().as_secs_f64()
+        );
+    }
+}
+
 fn setup() -> (Tracker, Vec<CameraFrame>, RobotOdometry, Arc<Codebook>) {
     let mesh = mesh();
+    if std::env::var("PREGRASP_BENCH_SKIP_COARSE").is_err() {
+        coarse_build_times(&mesh);
+    }
     let cb = codebook(&mesh);
     let mut table = pregrasp::mesh::builtin_box([4.0, 4.0, 0.02], [[120, 100, 80], [120, 100, 80]]);
     for v in &mut table.vertices_m {

@@ -22,11 +22,11 @@
 
 use crate::geometry::{Pose, PoseSamples};
 use crate::mesh::Mesh;
-use crate::tracker::bins::{GridTables, add_pulled, blur, fast_exp, gaussian_kernel};
+use crate::tracker::bins::{GridTables, blur, fast_exp, gaussian_kernel};
 use crate::tracker::codebook::Codebook;
 use crate::tracker::estimate::{EstimateConfig, ParticleSet, summarise_rotation};
 use crate::tracker::motion::{OdometryNoise, brownian, move_with_odometry};
-use crate::tracker::observation::{ObservationConfig, ViewImage, observe_view};
+use crate::tracker::observation::{ObservationConfig, ViewImage, add_loglik, observe_view};
 use crate::tracker::{
     CameraFrame, CameraMount, Detection, Estimate, ParticleView, RobotOdometry, StepReport, Track, TrackStatus,
     TrackerError,
@@ -665,18 +665,15 @@ impl Tracker {
                 * reference_from_hist.rotation
                 * crate::geometry::ray_rotation(&mean_hist);
             if q.angle() < 1e-9 {
-                self.fused
-                    .par_iter_mut()
-                    .zip(ev.loglik.par_iter())
-                    .for_each(|(f, l)| *f += l);
+                add_loglik(&mut self.fused, &ev, None, n);
             } else {
                 let map = tables.pull_map(&q);
-                add_pulled(&mut self.fused, &ev.loglik, &map, n);
+                add_loglik(&mut self.fused, &ev, Some(&map), n);
             }
             for (d, l) in depth_log.iter_mut().zip(&ev.depth_log) {
                 *d += l;
             }
-            self.sim = ev.loglik;
+            self.sim = ev.sim;
             report.timings.fusion_s += t0.elapsed().as_secs_f64();
         }
         let t0 = Instant::now();

@@ -53,8 +53,14 @@ impl Default for ObservationConfig {
 /// What one view says about one object's particles.
 #[derive(Debug, Clone)]
 pub struct ViewEvidence {
-    /// Log-likelihood per (view bin, particle), bin-major (only when the view is gated in).
-    pub loglik: Vec<f32>,
+    /// Cosine similarity per (view bin, particle), bin-major (only when the view is gated in);
+    /// [`add_loglik`] turns it into the log-likelihood on the fly.
+    pub sim: Vec<f32>,
+    /// Per particle `1 / c_max` (0 for unusable crops).
+    pub inv_best: Vec<f32>,
+    /// `-1 / (2 sigma^2)`.
+    pub k: f32,
+    pub floor: f32,
     /// Log depth-consistency term per particle.
     pub depth_log: Vec<f32>,
     /// Best absolute similarity over valid particles and bins.
@@ -186,36 +192,28 @@ pub fn observe_view(
     match_codes(codebook, &codes, n, sim);
     let matching_s = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
-    // best similarity of the view, and each particle's best bin
-    let (best, arg) = sim
+    // best similarity per particle (a vectorised max), then each particle's best bin
+    let mx = sim
         .par_chunks(n * 1024)
-        .enumerate()
-        .map(|(c, chunk)| {
+        .map(|chunk| {
             let mut m = vec![f32::NEG_INFINITY; n];
-            let mut a = vec![0usize; n];
-            for (r, row) in chunk.chunks(n).enumerate() {
-                for p in 0..n {
-                    if row[p] > m[p] {
-                        m[p] = row[p];
-                        a[p] = c * 1024 + r;
-                    }
+            for row in chunk.chunks(n) {
+                for (a, v) in m.iter_mut().zip(row) {
+                    *a = a.max(*v);
                 }
             }
-            (m, a)
+            m
         })
         .reduce(
-            || (vec![f32::NEG_INFINITY; n], vec![0usize; n]),
-            |(mut m1, mut a1), (m2, a2)| {
-                for p in 0..n {
-                    if m2[p] > m1[p] {
-                        m1[p] = m2[p];
-                        a1[p] = a2[p];
-                    }
+            || vec![f32::NEG_INFINITY; n],
+            |mut a, b| {
+                for (x, y) in a.iter_mut().zip(b) {
+                    *x = x.max(y);
                 }
-                (m1, a1)
+                a
             },
         );
-    let best = best
+    let best = mx
         .iter()
         .zip(&valid)
         .filter(|(_, v)| **v)
@@ -224,21 +222,36 @@ pub fn observe_view(
     if best.is_nan() || best < config.gate_similarity {
         return None;
     }
-    let inv = 1.0 / best;
-    let k = -0.5 / (config.sigma * config.sigma);
-    let floor = config.loglik_floor;
-    sim.par_chunks_mut(n * 1024).for_each(|c| {
-        for row in c.chunks_mut(n) {
-            for (v, ok) in row.iter_mut().zip(&valid) {
-                *v = if *ok {
-                    let r = 1.0 - *v * inv;
-                    (k * r * r).max(floor)
-                } else {
-                    floor
-                };
+    let arg = sim
+        .par_chunks(n * 1024)
+        .enumerate()
+        .map(|(c, chunk)| {
+            let mut a = vec![u32::MAX; n];
+            for (r, row) in chunk.chunks(n).enumerate() {
+                let b = (c * 1024 + r) as u32;
+                for ((ai, v), m) in a.iter_mut().zip(row).zip(&mx) {
+                    *ai = if *v == *m { b } else { *ai };
+                }
             }
-        }
-    });
+            a
+        })
+        .reduce(
+            || vec![u32::MAX; n],
+            |mut a, b| {
+                for (x, y) in a.iter_mut().zip(b) {
+                    if *x == u32::MAX {
+                        *x = y;
+                    }
+                }
+                a
+            },
+        );
+    let arg: Vec<usize> = arg
+        .into_iter()
+        .map(|a| if a == u32::MAX { 0 } else { a as usize })
+        .collect();
+    // per particle 1 / c_max; 0 for unusable crops, whose r = 1 then lands on the floor
+    let inv_best: Vec<f32> = valid.iter().map(|v| if *v { 1.0 / best } else { 0.0 }).collect();
     // depth check (PoseRBPF renders at the mean pose; we compare the crop's central surface
     // depth with that of the particle's best template): error (m) = (observed - template) * box
     let n_inplane = codebook.grid.n_inplane();
@@ -257,7 +270,10 @@ pub fn observe_view(
         .collect();
     let likelihoods_s = t1.elapsed().as_secs_f64();
     Some(ViewEvidence {
-        loglik: std::mem::take(sim),
+        sim: std::mem::take(sim),
+        inv_best,
+        k: -0.5 / (config.sigma * config.sigma),
+        floor: config.loglik_floor,
         depth_log,
         best_similarity: best,
         valid,
@@ -266,4 +282,25 @@ pub fn observe_view(
         matching_s,
         likelihoods_s,
     })
+}
+
+/// Adds a view's log-likelihood into `dst` (bin-major, `n` per bin), pulling through `map`
+/// (`dst[b] += ll[map[b]]`; `None`: the identity): `max(k (1 - c / c_max)^2, floor)`.
+pub fn add_loglik(dst: &mut [f32], ev: &ViewEvidence, map: Option<&[u32]>, n: usize) {
+    let (k, floor) = (ev.k, ev.floor);
+    let inv = &ev.inv_best;
+    dst.par_chunks_mut(n * 1024).enumerate().for_each(|(c, chunk)| {
+        let b0 = c * 1024;
+        for (r, row) in chunk.chunks_mut(n).enumerate() {
+            let src_b = match map {
+                Some(m) => m[b0 + r] as usize,
+                None => b0 + r,
+            };
+            let src = &ev.sim[src_b * n..(src_b + 1) * n];
+            for ((d, s), i) in row.iter_mut().zip(src).zip(inv) {
+                let x = 1.0 - s * i;
+                *d += (k * x * x).max(floor);
+            }
+        }
+    });
 }
