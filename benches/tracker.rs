@@ -248,6 +248,19 @@ fn stages(tracker: &mut Tracker, frames: &[CameraFrame], odo: &RobotOdometry) {
     );
 }
 
+/// Peak resident memory of this process so far (Linux `VmHWM`), MB.
+fn peak_rss_mb() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse::<f64>().ok()))
+        })
+        .map(|kb| kb / 1024.0)
+        .unwrap_or(f64::NAN)
+}
+
 fn bench(c: &mut Criterion) {
     let (mut tracker, frames, odo, cb) = setup();
     stages(&mut tracker, &frames, &odo);
@@ -256,6 +269,10 @@ fn bench(c: &mut Criterion) {
     g.bench_function("filter_step_110p_3views_640x480_full_grid", |b| {
         b.iter(|| black_box(tracker.step(&frames, Some(&odo)).expect("step")))
     });
+    eprintln!(
+        "peak RSS while tracking (before the GEMM comparison allocates its 253 MB outputs): {:.0} MB",
+        peak_rss_mb()
+    );
     // the matching's GEMM alone: 330 unit codes against the whole codebook, chunked over threads
     let k = cb.code_dim();
     let mut codes: Vec<f32> = (0..330 * k)
@@ -282,5 +299,9 @@ fn bench(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench);
+fn bench_and_report(c: &mut Criterion) {
+    bench(c);
+}
+
+criterion_group!(benches, bench_and_report);
 criterion_main!(benches);

@@ -682,10 +682,18 @@ impl Tracker {
         track.seen_by = seen_by.clone();
         track.best_similarity = best.is_finite().then_some(best as f64);
         let had_evidence = !seen_by.is_empty();
+        let mut pending_scale: Option<Vec<f32>> = None;
         if had_evidence {
             let s = &mut self.states[ti];
-            // per particle max of the fused log-likelihood
-            let fmax = column_max(&self.fused, n);
+            // per particle max of the fused log-likelihood, for exp's range; with floored views
+            // the sum cannot go below `floor * views` (exp of that is well inside f32), so the
+            // pass is skipped and 0 (the largest possible value) used
+            let worst = obs_cfg.loglik_floor * seen_by.len() as f32;
+            let fmax = if worst > -80.0 {
+                vec![0f32; n]
+            } else {
+                column_max(&self.fused, n)
+            };
             let floor_rel = self.config.prior_floor_rel as f32;
             let fused = &self.fused;
             let sums: Vec<f64> = s
@@ -727,15 +735,13 @@ impl Tracker {
             }
             s.weights = logw;
             normalise(&mut s.weights);
-            let inv: Vec<f32> = sums
-                .iter()
-                .map(|v| if *v > 0.0 { (1.0 / v) as f32 } else { 0.0 })
-                .collect();
-            s.hist.par_chunks_mut(n).for_each(|row| {
-                for (h, i) in row.iter_mut().zip(&inv) {
-                    *h *= i;
-                }
-            });
+            // each histogram's normalisation is applied lazily: in the estimate's mixture
+            // and in the resampling gather (one pass over all bins less)
+            pending_scale = Some(
+                sums.iter()
+                    .map(|v| if *v > 0.0 { (1.0 / v) as f32 } else { 0.0 })
+                    .collect(),
+            );
         }
         report.timings.fusion_s += t0.elapsed().as_secs_f64();
         // component floor
@@ -768,7 +774,13 @@ impl Tracker {
                 .inverse_transform_point(&Point3::from(mean))
                 .coords;
             let (tcov, tstd) = set.translation_covariance();
-            let mixture = set.mixture();
+            let mixture = match &pending_scale {
+                Some(scale) => {
+                    let w: Vec<f64> = s.weights.iter().zip(scale).map(|(w, k)| w * *k as f64).collect();
+                    set.mixture_with(&w)
+                }
+                None => set.mixture(),
+            };
             let mut summary = summarise_rotation(
                 &tables.grid,
                 &mixture,
@@ -816,14 +828,14 @@ impl Tracker {
         // resampling within components
         if had_evidence {
             let t0 = Instant::now();
-            self.resample(ti);
+            self.resample(ti, pending_scale.as_deref());
             report.timings.resampling_s += t0.elapsed().as_secs_f64();
         }
     }
 
     /// Systematic resampling inside each source camera's component: the component keeps its
     /// particle count and its weight (spread evenly over its new particles).
-    fn resample(&mut self, ti: usize) {
+    fn resample(&mut self, ti: usize, scale: Option<&[f32]>) {
         let s = &mut self.states[ti];
         let n = s.n();
         let mut src_idx: Vec<usize> = Vec::with_capacity(n);
@@ -857,7 +869,7 @@ impl Tracker {
             .zip(s.hist.par_chunks(n))
             .for_each(|(dst, src)| {
                 for (d, &i) in dst.iter_mut().zip(&src_idx) {
-                    *d = src[i];
+                    *d = src[i] * scale.map_or(1.0, |k| k[i]);
                 }
             });
         std::mem::swap(&mut self.scratch, &mut s.hist);
