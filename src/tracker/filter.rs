@@ -127,7 +127,13 @@ struct TrackState {
     /// nearest-bin re-binning by rotations below half a bin would never move it at all);
     /// every view, the reference camera included, is pulled through its own map instead.
     reference_from_hist: Pose,
+    /// Last bin map per camera with the rotation it was built for: reused while the rotation
+    /// moves by less than [`MAP_REUSE_RAD`] (static cameras, a slowly moving mean).
+    map_cache: Vec<(String, UnitQuaternion<f64>, Arc<Vec<u32>>)>,
 }
+
+/// A cached bin map is reused while its rotation differs by less than this (a bin is 5 degrees).
+const MAP_REUSE_RAD: f64 = 0.002;
 
 impl TrackState {
     fn n(&self) -> usize {
@@ -486,6 +492,7 @@ impl Tracker {
                         self.states[i].hist.clear();
                         self.states[i].rotation = None;
                         self.states[i].reference_from_hist = Pose::identity();
+                        self.states[i].map_cache.clear();
                         self.tracks[i].status = TrackStatus::Initialising;
                         self.tracks[i].weak_steps = 0;
                         i
@@ -511,6 +518,7 @@ impl Tracker {
                             rotation: None,
                             estimate: None,
                             reference_from_hist: Pose::identity(),
+                            map_cache: Vec::new(),
                         });
                         report.tracks_created.push(id);
                         self.states.len() - 1
@@ -667,7 +675,20 @@ impl Tracker {
             if q.angle() < 1e-9 {
                 add_loglik(&mut self.fused, &ev, None, n);
             } else {
-                let map = tables.pull_map(&q);
+                let cache = &mut self.states[ti].map_cache;
+                let cached = cache
+                    .iter()
+                    .find(|(c, cq, _)| c == &frame.camera && cq.angle_to(&q) < MAP_REUSE_RAD)
+                    .map(|(_, _, m)| m.clone());
+                let map = match cached {
+                    Some(m) => m,
+                    None => {
+                        let m = Arc::new(tables.pull_map(&q));
+                        cache.retain(|(c, _, _)| c != &frame.camera);
+                        cache.push((frame.camera.clone(), q, m.clone()));
+                        m
+                    }
+                };
                 add_loglik(&mut self.fused, &ev, Some(&map), n);
             }
             for (d, l) in depth_log.iter_mut().zip(&ev.depth_log) {
