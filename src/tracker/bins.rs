@@ -133,7 +133,7 @@ pub fn gaussian_kernel(radius: usize, sigma_bins: f64) -> Vec<f32> {
 /// Separable Gaussian blur of `n_p` histograms (bin-major layout) with `kernel`: azimuth and
 /// in-plane wrap around (they are angles), elevation is truncated at the poles with the kernel
 /// renormalised. `scratch` is resized as needed and reused between calls.
-pub fn blur(grid: &RotationGrid, h: &mut [f32], n_p: usize, kernel: &[f32], scratch: &mut Vec<f32>) {
+pub fn blur(grid: &RotationGrid, h: &mut Vec<f32>, n_p: usize, kernel: &[f32], scratch: &mut Vec<f32>) {
     let ne = grid.n_elevation();
     let na = grid.n_azimuth();
     let ni = grid.n_inplane();
@@ -174,9 +174,9 @@ pub fn blur(grid: &RotationGrid, h: &mut [f32], n_p: usize, kernel: &[f32], scra
             }
         }
     });
-    // elevation pass (truncated, renormalised)
+    // elevation pass (truncated, renormalised): from h into scratch, then swap the buffers
     scratch.resize(h.len(), 0.0);
-    scratch.copy_from_slice(h);
+    std::mem::swap(h, scratch);
     let src: &[f32] = scratch;
     // mass-preserving: each source row spreads its mass over the rows that exist
     let row_sum = |j: isize| -> f32 {

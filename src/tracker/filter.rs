@@ -626,7 +626,7 @@ impl Tracker {
         let n = self.states[ti].n();
         let nb = tables.grid.len();
         let obs_cfg = self.config.observation;
-        self.fused.clear();
+        // sized, not zeroed: the first gated view assigns
         self.fused.resize(nb * n, 0.0);
         let mut depth_log = vec![0f32; n];
         let mut best = f32::NEG_INFINITY;
@@ -673,7 +673,7 @@ impl Tracker {
                 * reference_from_hist.rotation
                 * crate::geometry::ray_rotation(&mean_hist);
             if q.angle() < 1e-9 {
-                add_loglik(&mut self.fused, &ev, None, n);
+                add_loglik(&mut self.fused, &ev, None, n, seen_by.len() == 1);
             } else {
                 let cache = &mut self.states[ti].map_cache;
                 let cached = cache
@@ -689,7 +689,7 @@ impl Tracker {
                         m
                     }
                 };
-                add_loglik(&mut self.fused, &ev, Some(&map), n);
+                add_loglik(&mut self.fused, &ev, Some(&map), n, seen_by.len() == 1);
             }
             for (d, l) in depth_log.iter_mut().zip(&ev.depth_log) {
                 *d += l;

@@ -286,7 +286,8 @@ pub fn observe_view(
 
 /// Adds a view's log-likelihood into `dst` (bin-major, `n` per bin), pulling through `map`
 /// (`dst[b] += ll[map[b]]`; `None`: the identity): `max(k (1 - c / c_max)^2, floor)`.
-pub fn add_loglik(dst: &mut [f32], ev: &ViewEvidence, map: Option<&[u32]>, n: usize) {
+/// With `assign`, `dst` is overwritten instead (the first view of a step: no zeroing pass).
+pub fn add_loglik(dst: &mut [f32], ev: &ViewEvidence, map: Option<&[u32]>, n: usize, assign: bool) {
     let (k, floor) = (ev.k, ev.floor);
     let inv = &ev.inv_best;
     dst.par_chunks_mut(n * 1024).enumerate().for_each(|(c, chunk)| {
@@ -297,9 +298,16 @@ pub fn add_loglik(dst: &mut [f32], ev: &ViewEvidence, map: Option<&[u32]>, n: us
                 None => b0 + r,
             };
             let src = &ev.sim[src_b * n..(src_b + 1) * n];
-            for ((d, s), i) in row.iter_mut().zip(src).zip(inv) {
-                let x = 1.0 - s * i;
-                *d += (k * x * x).max(floor);
+            if assign {
+                for ((d, s), i) in row.iter_mut().zip(src).zip(inv) {
+                    let x = 1.0 - s * i;
+                    *d = (k * x * x).max(floor);
+                }
+            } else {
+                for ((d, s), i) in row.iter_mut().zip(src).zip(inv) {
+                    let x = 1.0 - s * i;
+                    *d += (k * x * x).max(floor);
+                }
             }
         }
     });
