@@ -960,3 +960,34 @@ fn floor_components(s: &mut TrackState, min_weight: f64) {
     }
     normalise(&mut s.weights);
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tracker_can_move_between_threads() {
+        fn assert_send_sync<T: Send + Sync>() {}
+        assert_send_sync::<Tracker>();
+        assert_send_sync::<Codebook>();
+    }
+
+    #[test]
+    fn component_floor_keeps_every_camera_alive() {
+        let mut s = TrackState {
+            model: 0,
+            positions: vec![Vector3::zeros(); 4],
+            sources: vec![0, 0, 1, 1],
+            weights: vec![0.5, 0.5, 1e-9, 1e-9],
+            hist: vec![],
+            rotation: None,
+            estimate: None,
+            reference_from_hist: Pose::identity(),
+            map_cache: vec![],
+        };
+        floor_components(&mut s, 0.05);
+        let w1: f64 = s.weights[2] + s.weights[3];
+        assert!((w1 - 0.05 / 1.05).abs() < 1e-9, "{w1}");
+        assert!((s.weights.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+    }
+}
