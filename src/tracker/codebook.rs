@@ -27,7 +27,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 const MAGIC: &[u8; 8] = b"PGCODEBK";
-const FORMAT_VERSION: u32 = 1;
+const FORMAT_VERSION: u32 = 2;
 
 /// How a codebook is built.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -138,6 +138,9 @@ pub struct Codebook {
     pub encoder: LinearDenoisingEncoder,
     /// Row-major `n_bins x code_dim`, unit rows.
     pub codes: Vec<f32>,
+    /// Per viewpoint: median normalised depth of the template's central surface
+    /// ([`crate::tracker::encoder::central_median_depth`]; NaN when none).
+    pub median_depth_norm: Vec<f32>,
     /// Seconds the build took (0 when loaded from the cache).
     pub build_seconds: f64,
     /// True when it came from the cache.
@@ -217,7 +220,7 @@ impl Codebook {
             return Err(TrackerError::Config(format!("bad codebook config {config:?}")));
         }
         let diameter_m = mesh.diameter_m();
-        if !(diameter_m > 0.0) {
+        if diameter_m.is_nan() || diameter_m <= 0.0 {
             return Err(TrackerError::Config("mesh has zero diameter".into()));
         }
         let side_m = config.crop_margin * diameter_m;
@@ -312,6 +315,15 @@ impl Codebook {
             encoder.encode_templates(&x, ni, out);
             normalise_rows(out, kd);
         });
+        let median_depth_norm: Vec<f32> = (0..grid.n_viewpoints())
+            .into_par_iter()
+            .map(|v| {
+                let mut x = vec![0f32; d];
+                let mut mask = vec![false; d];
+                template(v, 0.0, &mut x, &mut mask);
+                crate::tracker::encoder::central_median_depth(&layout, &x, &mask).unwrap_or(f32::NAN)
+            })
+            .collect();
         Ok(Self {
             grid,
             config: config.clone(),
@@ -319,6 +331,7 @@ impl Codebook {
             diameter_m,
             encoder,
             codes,
+            median_depth_norm,
             build_seconds: t0.elapsed().as_secs_f64(),
             from_cache: false,
         })
@@ -378,9 +391,9 @@ fn corrupt(
     // depth noise (relative noise of far cameras is large in normalised units)
     let sigma = rng.random_range(0.0..0.35f32);
     if let Ok(noise) = Normal::new(0.0f32, sigma.max(1e-6)) {
-        for k in 0..f * f {
-            if x[k] < 1.0 {
-                x[k] = (x[k] + noise.sample(&mut rng)).clamp(0.0, 1.0);
+        for v in x[..f * f].iter_mut() {
+            if *v < 1.0 {
+                *v = (*v + noise.sample(&mut rng)).clamp(0.0, 1.0);
             }
         }
     }
@@ -476,6 +489,7 @@ fn write_cache(path: &Path, cb: &Codebook) -> Result<(), TrackerError> {
         &cb.encoder.pca_t,
         &cb.encoder.ridge_t,
         &cb.codes,
+        &cb.median_depth_norm,
     ] {
         push_f32s(&mut buf, v);
     }
@@ -545,6 +559,7 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
     let pca_t = read(d * k)?;
     let ridge_t = read(d * k)?;
     let codes = read(header.n_bins * k)?;
+    let median_depth_norm = read(grid.n_viewpoints())?;
     if codes.iter().any(|v| !v.is_finite()) {
         return Err(bad("non-finite codes"));
     }
@@ -562,6 +577,7 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
             ridge_t,
         },
         codes,
+        median_depth_norm,
         build_seconds: 0.0,
         from_cache: true,
     })

@@ -177,10 +177,10 @@ pub fn sample_crop(
                         n += 1;
                     }
                 }
-                for ch in 0..3 {
+                for (ch, sc) in sum.iter().enumerate() {
                     let k = base + (i * fc + j) * 3 + ch;
                     if n > 0 {
-                        out[k] = sum[ch] / n as f32 * layout.color_weight;
+                        out[k] = sc / n as f32 * layout.color_weight;
                         mask[k] = false;
                     } else {
                         out[k] = 0.0;
@@ -258,6 +258,31 @@ pub fn inpaint_depth(layout: &FeatureLayout, x: &mut [f32], mask: &mut [bool], h
             }
         }
     }
+}
+
+/// Lower-quartile normalised depth of the central half of a crop's depth cells that lie strictly
+/// inside the normalisation box (the object's visible surface near its centre); `None` when
+/// no such cell is valid. Compared between an observed crop and its best template, it gives a
+/// depth error in box units: `(observed - template) * box_m` metres.
+pub fn central_median_depth(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Option<f32> {
+    let f = layout.feature_px;
+    let mut v: Vec<f32> = Vec::with_capacity(f * f / 4);
+    for i in f / 4..f - f / 4 {
+        for j in f / 4..f - f / 4 {
+            let k = i * f + j;
+            if !mask[k] && x[k] > 0.0 && x[k] < 1.0 {
+                v.push(x[k]);
+            }
+        }
+    }
+    if v.len() < 3 {
+        return None;
+    }
+    // the lower quartile: the object's front surface; a table or wall behind the object only
+    // adds larger values
+    let q = v.len() / 4;
+    v.select_nth_unstable_by(q, |a, b| a.total_cmp(b));
+    Some(v[q])
 }
 
 /// An encoder from crop features to codes. Implementations must be usable from many threads.
@@ -340,6 +365,7 @@ impl LinearDenoisingEncoder {
     /// Fits the encoder: `clean` and `corrupted` are row-major `n x d` (the same templates,
     /// clean and corrupted), `corrupted_mask` marks missing values of the corrupted crops.
     /// `ridge_lambda_rel` scales the ridge penalty by the mean diagonal of the Gram matrix.
+    #[allow(clippy::too_many_arguments)] // the sizes travel with the flat buffers
     pub fn fit(
         clean: &[f32],
         corrupted: &[f32],

@@ -70,10 +70,19 @@ impl ParticleSet<'_> {
 
     /// Mixture histogram `sum_p w_p h_p` (f64).
     pub fn mixture(&self) -> Vec<f64> {
+        self.mixture_with(self.weights)
+    }
+
+    /// Mixture histogram with other per-particle factors (e.g. weights times a pending
+    /// normalisation of each histogram).
+    pub fn mixture_with(&self, factors: &[f64]) -> Vec<f64> {
+        use rayon::prelude::*;
         let n = self.n();
+        let f32s: Vec<f32> = factors.iter().map(|v| *v as f32).collect();
         self.hist
-            .chunks(n)
-            .map(|row| row.iter().zip(self.weights).map(|(h, w)| *h as f64 * w).sum())
+            .par_chunks(n)
+            .with_min_len(1024)
+            .map(|row| row.iter().zip(&f32s).map(|(h, w)| h * w).sum::<f32>() as f64)
             .collect()
     }
 
@@ -261,7 +270,8 @@ pub fn summarise_rotation(
         .map(|&b| (ray * grid.rotation(grid.unflat(b)), mixture[b] / total))
         .collect();
     // modes: greedy clustering by angle, heaviest first
-    let mut clusters: Vec<(UnitQuaternion<f64>, Vec<(UnitQuaternion<f64>, f64)>)> = Vec::new();
+    type Cluster = (UnitQuaternion<f64>, Vec<(UnitQuaternion<f64>, f64)>);
+    let mut clusters: Vec<Cluster> = Vec::new();
     for (q, m) in &top {
         if let Some(c) = clusters.iter_mut().find(|c| c.0.angle_to(q) < config.mode_merge_rad) {
             c.1.push((*q, *m));

@@ -22,11 +22,11 @@
 
 use crate::geometry::{Pose, PoseSamples};
 use crate::mesh::Mesh;
-use crate::tracker::bins::{GridTables, add_pulled, blur, gaussian_kernel};
+use crate::tracker::bins::{GridTables, blur, fast_exp, gaussian_kernel};
 use crate::tracker::codebook::Codebook;
 use crate::tracker::estimate::{EstimateConfig, ParticleSet, summarise_rotation};
 use crate::tracker::motion::{OdometryNoise, brownian, move_with_odometry};
-use crate::tracker::observation::{ObservationConfig, ViewImage, observe_view};
+use crate::tracker::observation::{ObservationConfig, ViewImage, add_loglik, observe_view};
 use crate::tracker::{
     CameraFrame, CameraMount, Detection, Estimate, ParticleView, RobotOdometry, StepReport, Track, TrackStatus,
     TrackerError,
@@ -127,7 +127,13 @@ struct TrackState {
     /// nearest-bin re-binning by rotations below half a bin would never move it at all);
     /// every view, the reference camera included, is pulled through its own map instead.
     reference_from_hist: Pose,
+    /// Last bin map per camera with the rotation it was built for: reused while the rotation
+    /// moves by less than [`MAP_REUSE_RAD`] (static cameras, a slowly moving mean).
+    map_cache: Vec<(String, UnitQuaternion<f64>, Arc<Vec<u32>>)>,
 }
+
+/// A cached bin map is reused while its rotation differs by less than this (a bin is 5 degrees).
+const MAP_REUSE_RAD: f64 = 0.002;
 
 impl TrackState {
     fn n(&self) -> usize {
@@ -376,8 +382,8 @@ impl Tracker {
             if s.n() > 0 {
                 let grid = self.models[s.model].tables.grid;
                 let n = s.n();
+                // the blur preserves each histogram's mass: no renormalisation needed
                 blur(&grid, &mut s.hist, n, &kernel, &mut self.scratch);
-                normalise_columns(&mut s.hist, n);
             }
         }
         report.timings.blur_s += t0.elapsed().as_secs_f64();
@@ -486,6 +492,7 @@ impl Tracker {
                         self.states[i].hist.clear();
                         self.states[i].rotation = None;
                         self.states[i].reference_from_hist = Pose::identity();
+                        self.states[i].map_cache.clear();
                         self.tracks[i].status = TrackStatus::Initialising;
                         self.tracks[i].weak_steps = 0;
                         i
@@ -498,7 +505,7 @@ impl Tracker {
                             object: det.object.clone(),
                             status: TrackStatus::Initialising,
                             stamp_ns: self.stamp_ns,
-                            best_similarity: f64::NAN,
+                            best_similarity: None,
                             weak_steps: 0,
                             seen_by: Vec::new(),
                         });
@@ -511,6 +518,7 @@ impl Tracker {
                             rotation: None,
                             estimate: None,
                             reference_from_hist: Pose::identity(),
+                            map_cache: Vec::new(),
                         });
                         report.tracks_created.push(id);
                         self.states.len() - 1
@@ -618,7 +626,7 @@ impl Tracker {
         let n = self.states[ti].n();
         let nb = tables.grid.len();
         let obs_cfg = self.config.observation;
-        self.fused.clear();
+        // sized, not zeroed: the first gated view assigns
         self.fused.resize(nb * n, 0.0);
         let mut depth_log = vec![0f32; n];
         let mut best = f32::NEG_INFINITY;
@@ -665,30 +673,48 @@ impl Tracker {
                 * reference_from_hist.rotation
                 * crate::geometry::ray_rotation(&mean_hist);
             if q.angle() < 1e-9 {
-                self.fused
-                    .par_iter_mut()
-                    .zip(ev.loglik.par_iter())
-                    .for_each(|(f, l)| *f += l);
+                add_loglik(&mut self.fused, &ev, None, n, seen_by.len() == 1);
             } else {
-                let map = tables.pull_map(&q);
-                add_pulled(&mut self.fused, &ev.loglik, &map, n);
+                let cache = &mut self.states[ti].map_cache;
+                let cached = cache
+                    .iter()
+                    .find(|(c, cq, _)| c == &frame.camera && cq.angle_to(&q) < MAP_REUSE_RAD)
+                    .map(|(_, _, m)| m.clone());
+                let map = match cached {
+                    Some(m) => m,
+                    None => {
+                        let m = Arc::new(tables.pull_map(&q));
+                        cache.retain(|(c, _, _)| c != &frame.camera);
+                        cache.push((frame.camera.clone(), q, m.clone()));
+                        m
+                    }
+                };
+                add_loglik(&mut self.fused, &ev, Some(&map), n, seen_by.len() == 1);
             }
             for (d, l) in depth_log.iter_mut().zip(&ev.depth_log) {
                 *d += l;
             }
-            self.sim = ev.loglik;
+            self.sim = ev.sim;
             report.timings.fusion_s += t0.elapsed().as_secs_f64();
         }
         let t0 = Instant::now();
         let track = &mut self.tracks[ti];
         track.stamp_ns = self.stamp_ns;
         track.seen_by = seen_by.clone();
-        track.best_similarity = if best.is_finite() { best as f64 } else { f64::NAN };
+        track.best_similarity = best.is_finite().then_some(best as f64);
         let had_evidence = !seen_by.is_empty();
+        let mut pending_scale: Option<Vec<f32>> = None;
         if had_evidence {
             let s = &mut self.states[ti];
-            // per particle max of the fused log-likelihood
-            let fmax = column_max(&self.fused, n);
+            // per particle max of the fused log-likelihood, for exp's range; with floored views
+            // the sum cannot go below `floor * views` (exp of that is well inside f32), so the
+            // pass is skipped and 0 (the largest possible value) used
+            let worst = obs_cfg.loglik_floor * seen_by.len() as f32;
+            let fmax = if worst > -80.0 {
+                vec![0f32; n]
+            } else {
+                column_max(&self.fused, n)
+            };
             let floor_rel = self.config.prior_floor_rel as f32;
             let fused = &self.fused;
             let sums: Vec<f64> = s
@@ -697,16 +723,17 @@ impl Tracker {
                 .zip(fused.par_chunks(n * 1024))
                 .enumerate()
                 .map(|(c, (hc, fc))| {
-                    let mut acc = vec![0f64; n];
+                    // f32 sums over 1,024 bins, f64 across chunks
+                    let mut acc = vec![0f32; n];
                     for (k, (hrow, frow)) in hc.chunks_mut(n).zip(fc.chunks(n)).enumerate() {
                         let floor = floor_rel * tables.volume(c * 1024 + k) as f32;
-                        for p in 0..n {
-                            let v = hrow[p].max(floor) * (frow[p] - fmax[p]).exp();
-                            hrow[p] = v;
-                            acc[p] += v as f64;
+                        for (((h, f), m), a) in hrow.iter_mut().zip(frow).zip(&fmax).zip(acc.iter_mut()) {
+                            let v = h.max(floor) * fast_exp(f - m);
+                            *h = v;
+                            *a += v;
                         }
                     }
-                    acc
+                    acc.into_iter().map(f64::from).collect::<Vec<f64>>()
                 })
                 .reduce(
                     || vec![0f64; n],
@@ -729,15 +756,13 @@ impl Tracker {
             }
             s.weights = logw;
             normalise(&mut s.weights);
-            let inv: Vec<f32> = sums
-                .iter()
-                .map(|v| if *v > 0.0 { (1.0 / v) as f32 } else { 0.0 })
-                .collect();
-            s.hist.par_chunks_mut(n).for_each(|row| {
-                for (h, i) in row.iter_mut().zip(&inv) {
-                    *h *= i;
-                }
-            });
+            // each histogram's normalisation is applied lazily: in the estimate's mixture
+            // and in the resampling gather (one pass over all bins less)
+            pending_scale = Some(
+                sums.iter()
+                    .map(|v| if *v > 0.0 { (1.0 / v) as f32 } else { 0.0 })
+                    .collect(),
+            );
         }
         report.timings.fusion_s += t0.elapsed().as_secs_f64();
         // component floor
@@ -770,7 +795,13 @@ impl Tracker {
                 .inverse_transform_point(&Point3::from(mean))
                 .coords;
             let (tcov, tstd) = set.translation_covariance();
-            let mixture = set.mixture();
+            let mixture = match &pending_scale {
+                Some(scale) => {
+                    let w: Vec<f64> = s.weights.iter().zip(scale).map(|(w, k)| w * *k as f64).collect();
+                    set.mixture_with(&w)
+                }
+                None => set.mixture(),
+            };
             let mut summary = summarise_rotation(
                 &tables.grid,
                 &mixture,
@@ -818,14 +849,14 @@ impl Tracker {
         // resampling within components
         if had_evidence {
             let t0 = Instant::now();
-            self.resample(ti);
+            self.resample(ti, pending_scale.as_deref());
             report.timings.resampling_s += t0.elapsed().as_secs_f64();
         }
     }
 
     /// Systematic resampling inside each source camera's component: the component keeps its
     /// particle count and its weight (spread evenly over its new particles).
-    fn resample(&mut self, ti: usize) {
+    fn resample(&mut self, ti: usize, scale: Option<&[f32]>) {
         let s = &mut self.states[ti];
         let n = s.n();
         let mut src_idx: Vec<usize> = Vec::with_capacity(n);
@@ -859,7 +890,7 @@ impl Tracker {
             .zip(s.hist.par_chunks(n))
             .for_each(|(dst, src)| {
                 for (d, &i) in dst.iter_mut().zip(&src_idx) {
-                    *d = src[i];
+                    *d = src[i] * scale.map_or(1.0, |k| k[i]);
                 }
             });
         std::mem::swap(&mut self.scratch, &mut s.hist);
@@ -880,39 +911,6 @@ fn normalise(w: &mut [f64]) {
         let u = 1.0 / w.len().max(1) as f64;
         w.fill(u);
     }
-}
-
-/// Each particle's histogram (a column of the bin-major layout) rescaled to sum to 1.
-fn normalise_columns(h: &mut [f32], n: usize) {
-    let sums = h
-        .par_chunks(n * 1024)
-        .map(|c| {
-            let mut acc = vec![0f64; n];
-            for row in c.chunks(n) {
-                for (a, v) in acc.iter_mut().zip(row) {
-                    *a += *v as f64;
-                }
-            }
-            acc
-        })
-        .reduce(
-            || vec![0f64; n],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    *x += y;
-                }
-                a
-            },
-        );
-    let inv: Vec<f32> = sums
-        .iter()
-        .map(|s| if *s > 0.0 { (1.0 / s) as f32 } else { 0.0 })
-        .collect();
-    h.par_chunks_mut(n).for_each(|row| {
-        for (v, i) in row.iter_mut().zip(&inv) {
-            *v *= i;
-        }
-    });
 }
 
 fn column_max(h: &[f32], n: usize) -> Vec<f32> {
@@ -961,4 +959,35 @@ fn floor_components(s: &mut TrackState, min_weight: f64) {
         }
     }
     normalise(&mut s.weights);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tracker_can_move_between_threads() {
+        fn assert_send_sync<T: Send + Sync>() {}
+        assert_send_sync::<Tracker>();
+        assert_send_sync::<Codebook>();
+    }
+
+    #[test]
+    fn component_floor_keeps_every_camera_alive() {
+        let mut s = TrackState {
+            model: 0,
+            positions: vec![Vector3::zeros(); 4],
+            sources: vec![0, 0, 1, 1],
+            weights: vec![0.5, 0.5, 1e-9, 1e-9],
+            hist: vec![],
+            rotation: None,
+            estimate: None,
+            reference_from_hist: Pose::identity(),
+            map_cache: vec![],
+        };
+        floor_components(&mut s, 0.05);
+        let w1: f64 = s.weights[2] + s.weights[3];
+        assert!((w1 - 0.05 / 1.05).abs() < 1e-9, "{w1}");
+        assert!((s.weights.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+    }
 }

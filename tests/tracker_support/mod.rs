@@ -1,7 +1,8 @@
 //! Synthetic scenes for the tracker tests: meshes on a table, rendered by the CPU rasteriser,
 //! with detections from the instance mask (the tests never read the truth into the filter
 //! except through these rendered images and boxes).
-#![allow(dead_code)]
+#![allow(dead_code)] // each test binary uses a part of the helpers
+#![allow(clippy::unwrap_used)] // test helpers: a failure is a test failure
 
 use nalgebra::{Point3, Translation3, UnitQuaternion, Vector3};
 use pregrasp::camera::{DepthImage, Intrinsics};
