@@ -5,4 +5,6 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
 export WGPU_BACKEND="${WGPU_BACKEND:-vulkan}"
+# lavapipe complains on every adapter request when XDG_RUNTIME_DIR is unset; harmless but noisy
+if [[ -z "${XDG_RUNTIME_DIR:-}" ]]; then XDG_RUNTIME_DIR=$(mktemp -d); export XDG_RUNTIME_DIR; fi
 exec cargo run --locked --release -- serve --demo "$@"
