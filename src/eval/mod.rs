@@ -3,6 +3,7 @@
 //! of the grasp decision.
 
 pub mod metrics;
+pub mod plot;
 pub mod report;
 
 pub mod cli {
