@@ -2,9 +2,11 @@
 //! paper's metrics (Table I), plots over time (Fig. 5) and, with `--decide`, the calibration
 //! of the grasp decision.
 
+pub mod calibration;
 pub mod metrics;
 pub mod plot;
 pub mod report;
+pub mod truth;
 
 pub mod cli {
     /// Options of `pregrasp eval`.
