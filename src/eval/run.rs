@@ -150,6 +150,8 @@ pub struct SequenceOutcome {
     pub summary: SequenceSummary,
     pub traces: Vec<ObjectTrace>,
     pub decisions: Vec<DecisionOutcome>,
+    /// The tracker's estimates after the last step, per live track: (object name, estimate).
+    pub final_estimates: Vec<(String, crate::tracker::Estimate)>,
 }
 
 /// The mesh of an object: `models_dir/<name>.ply` when given and present, else the rig's.
@@ -397,6 +399,12 @@ pub fn evaluate_sequence(
             }
         }
     }
+    let final_estimates = tracker
+        .tracks()
+        .iter()
+        .filter(|t| t.status != TrackStatus::Lost)
+        .filter_map(|t| tracker.estimate(t.id).map(|e| (t.object.clone(), e)))
+        .collect();
     let summary = SequenceSummary {
         name,
         target: seq.rig.target.clone(),
@@ -408,6 +416,7 @@ pub fn evaluate_sequence(
         summary,
         traces: traces.into_values().collect(),
         decisions,
+        final_estimates,
     })
 }
 
