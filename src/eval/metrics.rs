@@ -104,7 +104,7 @@ fn candidate(k: usize) -> UnitQuaternion<f64> {
         1 => Vector3::y_axis(),
         _ => Vector3::z_axis(),
     };
-    let angle = if k % 2 == 0 {
+    let angle = if k.is_multiple_of(2) {
         std::f64::consts::FRAC_PI_2
     } else {
         std::f64::consts::PI
