@@ -79,12 +79,16 @@ pub fn tracker_config(base: &TrackerConfig, mode: Mode) -> TrackerConfig {
     let mut c = base.clone();
     match mode {
         Mode::Multi => {
-            c.particles_per_stationary_camera = 30;
+            c.particles_per_external_camera = 30;
             c.particles_from_robot_camera = 50;
+            c.only_reference_camera = false;
         }
         Mode::Single => {
-            c.particles_per_stationary_camera = 110;
+            // The reference camera alone: 110 particles whether it rides on the robot or (a
+            // rig without a robot camera) stands still.
+            c.particles_per_external_camera = 110;
             c.particles_from_robot_camera = 110;
+            c.only_reference_camera = true;
         }
     }
     c
@@ -541,7 +545,7 @@ pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>
     settings.insert("detection_seed".into(), cfg.detection_seed.into());
     settings.insert("renderer".into(), renderer.adapter_name().into());
     let tc = tracker_config(&cfg.tracker, cfg.mode);
-    settings.insert("particles_per_stationary_camera".into(), tc.particles_per_stationary_camera.into());
+    settings.insert("particles_per_external_camera".into(), tc.particles_per_external_camera.into());
     settings.insert("particles_from_robot_camera".into(), tc.particles_from_robot_camera.into());
     settings.insert(
         "codebook_s".into(),
