@@ -45,6 +45,9 @@ pub struct Args {
     /// Seed of the stand-in detections.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Track only each sequence's target object (the Table I rows), not every object.
+    #[arg(long)]
+    pub only_target: bool,
     /// An earlier run's output folder whose traces the plots show dashed (e.g. single-view).
     #[arg(long)]
     pub compare: Option<PathBuf>,
@@ -75,6 +78,7 @@ impl Args {
             detection_seed: self.seed,
             max_frames: self.max_frames,
             decide,
+            only_target: self.only_target,
         })
     }
 }
