@@ -1,0 +1,315 @@
+//! The grasp-or-observe decision on hand-made pose distributions (issue 4's scenarios).
+//! Reference frame of the samples: z up, the table at z = 0.
+
+use nalgebra::{Translation3, UnitQuaternion, Vector3};
+use pregrasp::geometry::{Pose, PoseSamples};
+use pregrasp::grasp::{
+    CandidateView, DecisionQuery, FailureTest, Grasp, GraspObject, Gripper, Motion, SupportPlane,
+    Verdict, decide, success_on_pose, suggest_view,
+};
+use pregrasp::mesh::{self, Mesh};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use std::path::{Path, PathBuf};
+
+fn shared() -> PathBuf {
+    match std::env::var("PREGRASP_SHARED") {
+        Ok(p) => PathBuf::from(p),
+        Err(_) => Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"),
+    }
+}
+
+fn ycb(name: &str) -> Mesh {
+    Mesh::load(&shared().join("ycb").join(format!("{name}.ply"))).expect("YCB mesh in ../shared/ycb")
+}
+
+fn table() -> SupportPlane {
+    SupportPlane {
+        normal: [0.0, 0.0, 1.0],
+        point_m: [0.0, 0.0, 0.0],
+    }
+}
+
+/// The object upright on the table at (0.6, 0.1), its lowest point on z = 0.
+fn standing(object: &GraspObject) -> Pose {
+    let (lo, _) = object.extent_along(&Vector3::z());
+    Pose::from_parts(Translation3::new(0.6, 0.1, -lo), UnitQuaternion::identity())
+}
+
+/// Samples around `estimate`: Gaussian translation (std per reference axis) and rotation
+/// (std of the rotation vector per reference axis), applied on the left.
+fn gaussian_samples(estimate: &Pose, t_std_m: [f64; 3], r_std_rad: [f64; 3], n: usize, seed: u64) -> PoseSamples {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let std = Normal::new(0.0, 1.0).unwrap();
+    let poses = (0..n)
+        .map(|_| {
+            let t = Vector3::from_fn(|i, _| std.sample(&mut rng) * t_std_m[i]);
+            let r = Vector3::from_fn(|i, _| std.sample(&mut rng) * r_std_rad[i]);
+            rotate_about_origin(estimate, &UnitQuaternion::from_scaled_axis(r), &t)
+        })
+        .collect();
+    PoseSamples {
+        poses,
+        effective_sample_size: n as f64,
+    }
+}
+
+/// `estimate` rotated by `r` about its own origin (in reference axes), then shifted by `t`.
+fn rotate_about_origin(estimate: &Pose, r: &UnitQuaternion<f64>, t: &Vector3<f64>) -> Pose {
+    Pose::from_parts(
+        Translation3::from(estimate.translation.vector + t),
+        r * estimate.rotation,
+    )
+}
+
+fn top_grasp(object: &GraspObject, depth_m: f64) -> Grasp {
+    Grasp::new(object, &-Vector3::z(), &Vector3::x(), depth_m, "top, close x").unwrap()
+}
+
+fn query(grasp: Option<Grasp>) -> DecisionQuery {
+    DecisionQuery {
+        n_samples: 1000,
+        threshold: 0.9,
+        grasp,
+        support_plane: Some(table()),
+    }
+}
+
+#[test]
+fn tiny_uncertainty_around_a_centred_can_grasps() {
+    let gripper = Gripper::default_parallel_jaw();
+    let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
+    let est = standing(&can);
+    let samples = gaussian_samples(&est, [0.001; 3], [0.5f64.to_radians(); 3], 1000, 1);
+    let d = decide(&can, &gripper, &est, &samples, &query(None)).unwrap();
+    assert_eq!(d.decision, Verdict::Grasp, "{:#?}", d.reasons);
+    assert!(d.p_success > 0.99, "{}", d.p_success);
+    assert!(d.ci95[0] >= 0.9 && d.ci95[0] <= d.p_success && d.ci95[1] >= d.p_success);
+    assert_eq!(d.n_samples, 1000);
+    assert!(!d.candidates.is_empty());
+    // ranked best first; a grasp from below (into the table) is among them and scores 0
+    assert!(d.candidates.windows(2).all(|w| w[0].p_success >= w[1].p_success));
+    let from_below = d
+        .candidates
+        .iter()
+        .find(|c| Vector3::from(c.grasp.approach_in_object).z > 0.9)
+        .expect("a candidate approaching from below");
+    assert_eq!(from_below.p_success, 0.0);
+    // the planned gripper pose works on the estimate itself
+    assert!(success_on_pose(&can, &gripper, &d.reference_from_gripper, &est, Some(&table())));
+}
+
+#[test]
+fn few_effective_samples_widen_the_interval_and_block_the_grasp() {
+    let gripper = Gripper::default_parallel_jaw();
+    let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
+    let est = standing(&can);
+    let mut samples = gaussian_samples(&est, [0.001; 3], [0.005; 3], 1000, 2);
+    samples.effective_sample_size = 20.0;
+    let d = decide(&can, &gripper, &est, &samples, &query(Some(top_grasp(&can, 0.03)))).unwrap();
+    assert!(d.p_success > 0.99);
+    assert!((d.effective_sample_size - 20.0).abs() < 1e-9);
+    assert!(d.ci95[0] < 0.9);
+    assert_eq!(d.decision, Verdict::Observe);
+}
+
+#[test]
+fn translation_spread_beyond_the_finger_clearance_observes_and_names_the_closing_axis() {
+    let gripper = Gripper::default_parallel_jaw();
+    let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
+    let est = standing(&can);
+    // clearance per side (140 - 102) / 2 = 19 mm; spread 30 mm along reference x = gripper x
+    let samples = gaussian_samples(&est, [0.03, 0.001, 0.001], [0.0; 3], 1000, 3);
+    let grasp = top_grasp(&can, 0.03);
+    let d = decide(&can, &gripper, &est, &samples, &query(Some(grasp))).unwrap();
+    assert_eq!(d.decision, Verdict::Observe);
+    assert!(d.p_success < 0.8, "{}", d.p_success);
+    let top = &d.reasons[0];
+    assert_eq!(top.test, FailureTest::Approach, "{:#?}", d.reasons);
+    assert!(top.failure_share > 0.2);
+    let driver = &top.drivers[0];
+    assert_eq!((driver.motion, driver.axis.as_str()), (Motion::Translation, "gripper_x"), "{:#?}", top.drivers);
+    assert!(driver.failure_dependence > 0.3, "{driver:?}");
+    // the closing axis is the reference x here
+    assert!(driver.axis_in_reference[0].abs() > 0.99);
+    let overall = d.driving_axes().next().unwrap();
+    assert_eq!(overall.axis, "gripper_x");
+    assert!(top.message.contains("gripper_x"), "{}", top.message);
+
+    // the next-best view looks across x (from above), not along it
+    let look_along_x = CandidateView {
+        name: "along_x".into(),
+        reference_from_camera: Pose::from_parts(
+            Translation3::new(0.0, 0.1, 0.1),
+            UnitQuaternion::rotation_between(&Vector3::z(), &Vector3::x()).unwrap(),
+        ),
+    };
+    let look_down = CandidateView {
+        name: "from_above".into(),
+        reference_from_camera: Pose::from_parts(
+            Translation3::new(0.6, 0.1, 1.0),
+            UnitQuaternion::rotation_between(&Vector3::z(), &-Vector3::z()).unwrap_or_else(|| {
+                UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
+            }),
+        ),
+    };
+    let s = suggest_view(&d, &[look_along_x, look_down]).unwrap();
+    assert_eq!(s.name, "from_above", "{s:?}");
+}
+
+#[test]
+fn lateral_spread_beyond_the_groove_fails_alignment_along_gripper_y() {
+    let gripper = Gripper::default_parallel_jaw();
+    let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
+    let est = standing(&can);
+    // the groove mouth is +-9 mm across the pad (gripper y = reference y for this grasp)
+    let samples = gaussian_samples(&est, [0.001, 0.02, 0.001], [0.0; 3], 1000, 4);
+    let d = decide(&can, &gripper, &est, &samples, &query(Some(top_grasp(&can, 0.03)))).unwrap();
+    assert_eq!(d.decision, Verdict::Observe);
+    let align = d.reasons.iter().find(|r| r.test == FailureTest::Alignment).expect("alignment fails");
+    assert!(align.failure_share > 0.3, "{:#?}", d.reasons);
+    assert_eq!(align.drivers[0].axis, "gripper_y");
+    assert_eq!(align.drivers[0].motion, Motion::Translation);
+    // the same spread within the groove passes
+    let narrow = gaussian_samples(&est, [0.001, 0.003, 0.001], [0.0; 3], 1000, 5);
+    let d = decide(&can, &gripper, &est, &narrow, &query(Some(top_grasp(&can, 0.03)))).unwrap();
+    assert_eq!(d.decision, Verdict::Grasp, "{:#?}", d.reasons);
+}
+
+/// Rotations uniform in +-`half_range_rad` about the reference z through the object's origin.
+fn spin_samples(estimate: &Pose, half_range_rad: f64, n: usize, seed: u64) -> PoseSamples {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let poses = (0..n)
+        .map(|_| {
+            let a = rng.random_range(-half_range_rad..half_range_rad);
+            rotate_about_origin(
+                estimate,
+                &UnitQuaternion::from_axis_angle(&Vector3::z_axis(), a),
+                &Vector3::zeros(),
+            )
+        })
+        .collect();
+    PoseSamples {
+        poses,
+        effective_sample_size: n as f64,
+    }
+}
+
+#[test]
+fn rotation_about_the_cans_axis_grasps_about_the_cracker_boxs_long_axis_observes() {
+    let gripper = Gripper::default_parallel_jaw();
+    let spread = std::f64::consts::PI; // fully unknown about the vertical axis
+
+    let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
+    let est = standing(&can);
+    let d = decide(&can, &gripper, &est, &spin_samples(&est, spread, 1000, 6), &query(None)).unwrap();
+    assert_eq!(d.decision, Verdict::Grasp, "{:#?}", d.reasons);
+    assert!(d.p_success > 0.97);
+
+    // the cracker box stands on its small face: its long axis (z, 213 mm) is vertical
+    let cracker = GraspObject::new(&ycb("003_cracker_box")).unwrap();
+    let est = standing(&cracker);
+    let d = decide(&cracker, &gripper, &est, &spin_samples(&est, spread, 1000, 7), &query(None)).unwrap();
+    assert_eq!(d.decision, Verdict::Observe);
+    assert!(d.p_success < 0.6, "{}", d.p_success);
+    let driver = d.driving_axes().next().expect("a driving axis");
+    assert_eq!(driver.motion, Motion::Rotation, "{:#?}", d.uncertainty);
+    // the rotation that drives it is about the vertical (reference z)
+    assert!(driver.axis_in_reference[2].abs() > 0.99, "{driver:?}");
+    // but a small spread about the same axis still grasps: the flat pads square the box
+    let d = decide(&cracker, &gripper, &est, &spin_samples(&est, 3f64.to_radians(), 1000, 8), &query(None)).unwrap();
+    assert_eq!(d.decision, Verdict::Grasp, "{:#?}", d.reasons);
+}
+
+#[test]
+fn a_grasp_planned_too_low_fails_on_the_table() {
+    let gripper = Gripper::default_parallel_jaw();
+    let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
+    let est = standing(&can);
+    let (z_lo, _) = can.extent_along(&Vector3::z());
+    let samples = gaussian_samples(&est, [0.001; 3], [0.003; 3], 500, 9);
+    // side grasp: approach along object +x, close along y; the fingers' width is vertical
+    let side = |tcp_height_m: f64| {
+        let g = Grasp::new(&can, &Vector3::x(), &Vector3::y(), 0.03, "side").unwrap();
+        let mut pose = g.object_from_gripper;
+        pose.translation.vector.z = z_lo + tcp_height_m;
+        Grasp::from_pose(&can, pose, "side")
+    };
+    let low = decide(&can, &gripper, &est, &samples, &query(Some(side(0.010)))).unwrap();
+    assert_eq!(low.decision, Verdict::Observe);
+    assert_eq!(low.p_success, 0.0);
+    assert_eq!(low.reasons[0].test, FailureTest::Table, "{:#?}", low.reasons);
+    assert_eq!(low.reasons[0].failure_share, 1.0);
+    let ok = decide(&can, &gripper, &est, &samples, &query(Some(side(0.06)))).unwrap();
+    assert_eq!(ok.decision, Verdict::Grasp, "{:#?}", ok.reasons);
+    // without a table the low grasp is fine
+    let mut q = query(Some(side(0.010)));
+    q.support_plane = None;
+    let no_table = decide(&can, &gripper, &est, &samples, &q).unwrap();
+    assert!(no_table.reasons.iter().all(|r| r.test != FailureTest::Table));
+    assert_eq!(no_table.decision, Verdict::Grasp, "{:#?}", no_table.reasons);
+}
+
+#[test]
+fn two_modes_box_and_its_turned_copy_p_reflects_both() {
+    let gripper = Gripper::default_parallel_jaw();
+    // 160 x 60 x 210 mm: only the 60 mm side fits the stroke
+    let bx = GraspObject::new(&mesh::builtin("box").unwrap()).unwrap();
+    let est = standing(&bx);
+    let grasp = Grasp::new(&bx, &-Vector3::z(), &Vector3::y(), 0.03, "top, close y").unwrap();
+    let turned = rotate_about_origin(
+        &est,
+        &UnitQuaternion::from_axis_angle(&Vector3::z_axis(), std::f64::consts::FRAC_PI_2),
+        &Vector3::zeros(),
+    );
+    let flipped = rotate_about_origin(
+        &est,
+        &UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+        &Vector3::zeros(),
+    );
+    for (other, w_est, expect) in [(turned, 0.7, 0.7), (turned, 0.4, 0.4), (flipped, 0.5, 1.0)] {
+        let a = gaussian_samples(&est, [0.001; 3], [0.005; 3], (1000.0 * w_est) as usize, 10);
+        let b = gaussian_samples(&other, [0.001; 3], [0.005; 3], 1000 - a.poses.len(), 11);
+        let mut poses = a.poses;
+        poses.extend(b.poses);
+        let samples = PoseSamples {
+            poses,
+            effective_sample_size: 1000.0,
+        };
+        let d = decide(&bx, &gripper, &est, &samples, &query(Some(grasp.clone()))).unwrap();
+        assert!((d.p_success - expect).abs() < 0.03, "p {} expected {expect}", d.p_success);
+        if expect < 0.9 {
+            assert_eq!(d.decision, Verdict::Observe);
+            assert_eq!(d.reasons[0].test, FailureTest::Approach);
+            assert!((d.reasons[0].failure_share - (1.0 - expect)).abs() < 0.03);
+        } else {
+            assert_eq!(d.decision, Verdict::Grasp);
+        }
+    }
+}
+
+#[test]
+fn bad_queries_are_errors_not_panics() {
+    let gripper = Gripper::default_parallel_jaw();
+    let can = GraspObject::new(&mesh::builtin("can").unwrap()).unwrap();
+    let est = standing(&can);
+    let empty = PoseSamples {
+        poses: vec![],
+        effective_sample_size: 0.0,
+    };
+    assert!(decide(&can, &gripper, &est, &empty, &query(None)).is_err());
+    let samples = gaussian_samples(&est, [0.001; 3], [0.0; 3], 10, 12);
+    let mut q = query(None);
+    q.threshold = 1.5;
+    assert!(decide(&can, &gripper, &est, &samples, &q).is_err());
+    let mut q = query(None);
+    q.support_plane = Some(SupportPlane {
+        normal: [0.0, 0.0, 0.0],
+        point_m: [0.0; 3],
+    });
+    assert!(decide(&can, &gripper, &est, &samples, &q).is_err());
+    // an object wider than the stroke on every axis has no candidate
+    let big = GraspObject::new(&mesh::builtin_box([0.2, 0.2, 0.2], [[1, 1, 1], [2, 2, 2]])).unwrap();
+    assert!(decide(&big, &gripper, &standing(&big), &samples, &query(None)).is_err());
+}
