@@ -1,7 +1,9 @@
 //! Calibration of the grasp decision against the outcome on the true pose: reliability per
-//! decile of predicted `p_success`, expected calibration error, grasp rate, false grasp rate.
+//! decile of predicted `p_success`, expected calibration error, grasp rate, false grasp rate
+//! (computed by `grasp::calibration`; this file collects the outcomes and shapes the block).
 
 use super::report::{DecisionBlock, ReliabilityBin};
+use crate::grasp::calibration::{CalibrationRecord, calibration_report};
 
 /// One decision at one frame and its outcome on the true pose.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -13,41 +15,37 @@ pub struct DecisionOutcome {
     pub success: bool,
 }
 
-/// The `decision` block of `results.json`; `None` without outcomes.
+/// The `decision` block of `results.json` (the statistics are `grasp::calibration`'s);
+/// `None` without outcomes.
 pub fn summarise(outcomes: &[DecisionOutcome], threshold: f64) -> Option<DecisionBlock> {
     if outcomes.is_empty() {
         return None;
     }
-    let n = outcomes.len() as f64;
-    let mut bins: Vec<(f64, usize, usize)> = vec![(0.0, 0, 0); 10];
-    for o in outcomes {
-        let k = ((o.p_success.clamp(0.0, 1.0) * 10.0).floor() as usize).min(9);
-        bins[k].0 += o.p_success;
-        bins[k].1 += usize::from(o.success);
-        bins[k].2 += 1;
-    }
-    let reliability: Vec<ReliabilityBin> = bins
+    let records: Vec<CalibrationRecord> = outcomes
         .iter()
-        .filter(|b| b.2 > 0)
-        .map(|&(p, s, c)| ReliabilityBin {
-            predicted: p / c as f64,
-            observed: s as f64 / c as f64,
-            count: c,
+        .map(|o| CalibrationRecord {
+            p_success: o.p_success,
+            decided_grasp: o.grasp,
+            succeeded: o.success,
         })
         .collect();
-    let ece = reliability
-        .iter()
-        .map(|b| b.count as f64 / n * (b.predicted - b.observed).abs())
-        .sum();
-    let grasps: Vec<&DecisionOutcome> = outcomes.iter().filter(|o| o.grasp).collect();
+    let r = calibration_report(&records);
     Some(DecisionBlock {
-        ece,
-        false_grasp_rate: (!grasps.is_empty())
-            .then(|| grasps.iter().filter(|o| !o.success).count() as f64 / grasps.len() as f64),
-        grasp_rate: grasps.len() as f64 / n,
-        reliability,
-        frames: outcomes.len(),
-        true_success_rate: outcomes.iter().filter(|o| o.success).count() as f64 / n,
+        ece: r.ece,
+        false_grasp_rate: (r.n_grasp > 0).then_some(r.false_grasp_rate),
+        grasp_rate: r.grasp_rate,
+        reliability: r
+            .reliability
+            .iter()
+            .map(|b| ReliabilityBin {
+                predicted: b.predicted,
+                observed: b.observed,
+                count: b.count,
+            })
+            .collect(),
+        frames: r.n_decisions,
+        n_grasp: r.n_grasp,
+        true_success_rate: outcomes.iter().filter(|o| o.success).count() as f64 / outcomes.len() as f64,
         threshold,
     })
 }

@@ -8,9 +8,11 @@
 //! (reliability of the grasp decision), `run.rs` (the runner), `cli.rs` (`pregrasp eval`).
 
 pub mod calibration;
+pub mod cli;
 pub mod metrics;
 pub mod plot;
 pub mod report;
+pub mod run;
 pub mod truth;
 
 /// Errors of the evaluation.
@@ -28,15 +30,4 @@ pub enum EvalError {
     Grasp(String),
     #[error("output: {0}")]
     Io(String),
-}
-
-// The runner (`run.rs`) and the command line (`cli.rs`) need the tracker and grasp modules;
-// they are declared once those branches are merged. Until then:
-pub mod cli {
-    /// Options of `pregrasp eval`.
-    #[derive(Debug, clap::Args)]
-    pub struct Args {}
-    pub fn run(_args: Args) -> anyhow::Result<()> {
-        anyhow::bail!("pregrasp eval is being built: the tracker is not merged yet")
-    }
 }

@@ -168,6 +168,8 @@ pub struct DecisionBlock {
     pub reliability: Vec<ReliabilityBin>,
     /// Frames with a decision.
     pub frames: usize,
+    /// Of which answered `grasp`.
+    pub n_grasp: usize,
     /// Share of those frames whose grasp succeeds on the true pose.
     pub true_success_rate: f64,
     pub threshold: f64,

@@ -115,13 +115,7 @@ pub struct ModelStore {
 }
 
 impl ModelStore {
-    fn get(
-        &mut self,
-        renderer: &Renderer,
-        name: &str,
-        mesh: Mesh,
-        cfg: &EvalConfig,
-    ) -> Result<Arc<Model>, EvalError> {
+    fn get(&mut self, renderer: &Renderer, name: &str, mesh: Mesh, cfg: &EvalConfig) -> Result<Arc<Model>, EvalError> {
         let key = (name.to_string(), mesh.content_hash());
         if let Some(m) = self.models.get(&key) {
             return Ok(m.clone());
@@ -387,7 +381,17 @@ pub fn evaluate_sequence(
                 });
                 if let (Some(dc), Some(i), true) = (&cfg.decide, assoc[k], table_row(object)) {
                     let (track_id, est) = &live[i];
-                    if let Some(o) = decide_once(seq, &tracker, model, dc, *track_id, est, truth, frame_id, &mut decide_rng)? {
+                    if let Some(o) = decide_once(
+                        seq,
+                        &tracker,
+                        model,
+                        dc,
+                        *track_id,
+                        est,
+                        truth,
+                        frame_id,
+                        &mut decide_rng,
+                    )? {
                         decisions.push(o);
                     }
                 }
@@ -480,8 +484,7 @@ fn decide_once(
         &decision.reference_from_gripper,
         &truth.reference_from_object,
         plane_true.as_ref(),
-    )
-    .map_err(|e| EvalError::Grasp(e.to_string()))?;
+    );
     Ok(Some(DecisionOutcome {
         p_success: decision.p_success,
         grasp: decision.decision == Verdict::Grasp,
@@ -529,7 +532,10 @@ pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>
         for t in compare_traces.iter().filter(|t| t.sequence == outcome.summary.name) {
             series.push(Series::from_trace(t, &format!("{} (compared)", t.object), true, t0));
         }
-        let svg = sequence_svg(&format!("{} ({}-view)", outcome.summary.name, cfg.mode.as_str()), &series);
+        let svg = sequence_svg(
+            &format!("{} ({}-view)", outcome.summary.name, cfg.mode.as_str()),
+            &series,
+        );
         let svg_path = out.join("plots").join(format!("{}.svg", outcome.summary.name));
         std::fs::write(&svg_path, svg).map_err(|e| io(&svg_path, e))?;
         tracing::info!(
@@ -552,8 +558,14 @@ pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>
     settings.insert("only_target".into(), cfg.only_target.into());
     settings.insert("renderer".into(), renderer.adapter_name().into());
     let tc = tracker_config(&cfg.tracker, cfg.mode);
-    settings.insert("particles_per_external_camera".into(), tc.particles_per_external_camera.into());
-    settings.insert("particles_from_robot_camera".into(), tc.particles_from_robot_camera.into());
+    settings.insert(
+        "particles_per_external_camera".into(),
+        tc.particles_per_external_camera.into(),
+    );
+    settings.insert(
+        "particles_from_robot_camera".into(),
+        tc.particles_from_robot_camera.into(),
+    );
     settings.insert(
         "codebook_s".into(),
         serde_json::to_value(&store.codebook_s).unwrap_or_default(),
