@@ -201,14 +201,8 @@ pub struct CameraStream {
     pub gt_info: BTreeMap<u32, Vec<GtInfo>>,
 }
 
-/// A detection as an object detector would give it (stand-in made from `bbox_visib`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Detection {
-    /// The model name (rig.json `objects[].name`).
-    pub object: String,
-    pub bbox_xywh_px: [f64; 4],
-    pub score: f64,
-}
+/// Detections are the tracker's type: the stand-ins of [`Sequence::detections`] feed it directly.
+pub use crate::tracker::Detection;
 
 /// One entry of `odometry.json`, in memory (metres).
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -52,7 +52,8 @@ pub fn silhouette(mesh: &Mesh, camera_from_object: &Pose, k: &Intrinsics) -> Vec
         if x1 < x0 as i64 || y1 < y0 as i64 {
             continue;
         }
-        let edge = |p: [f64; 2], q: [f64; 2], x: f64, y: f64| ((q[0] - p[0]) * (y - p[1]) - (q[1] - p[1]) * (x - p[0])) * s;
+        let edge =
+            |p: [f64; 2], q: [f64; 2], x: f64, y: f64| ((q[0] - p[0]) * (y - p[1]) - (q[1] - p[1]) * (x - p[0])) * s;
         for y in y0..=y1 as usize {
             let py = y as f64 + 0.5;
             let row = &mut mask[y * w..(y + 1) * w];
@@ -96,7 +97,11 @@ pub fn gt_info(alone: &[bool], visible: &[bool], width: u32) -> GtInfo {
         bbox_visib: Some(bbox_of(visible, width)),
         px_count_all: Some(all),
         px_count_visib: Some(visib),
-        visib_fract: Some(if all == 0 { 0.0 } else { (visib as f64 / all as f64).min(1.0) }),
+        visib_fract: Some(if all == 0 {
+            0.0
+        } else {
+            (visib as f64 / all as f64).min(1.0)
+        }),
     }
 }
 

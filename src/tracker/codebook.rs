@@ -60,7 +60,7 @@ impl Default for CodebookConfig {
             use_color: true,
             color_weight: 0.7,
             n_train: 12_000,
-            ridge_lambda_rel: 0.01,
+            ridge_lambda_rel: 1e-3,
             seed: 7,
         }
     }
@@ -372,16 +372,19 @@ fn corrupt(
             }
         }
     }
-    // missing depth readings
+    // missing depth readings, sometimes the whole background (nothing behind the object)
     let missing = rng.random_range(0.0..0.2f64);
+    let no_background = !clutter && rng.random::<f64>() < 0.5;
     for k in 0..f * f {
-        if rng.random::<f64>() < missing {
+        if rng.random::<f64>() < missing || (no_background && bg[k]) {
             mask[k] = true;
         }
     }
+    let mut has_color = layout.use_color;
     if layout.use_color {
         let base = layout.depth_len();
         if rng.random::<f64>() < 0.25 {
+            has_color = false;
             mask[base..].fill(true);
         } else {
             let gain = rng.random_range(0.7..1.3f32);
@@ -392,7 +395,9 @@ fn corrupt(
                     let dk = (ci * f / fc) * f + cj * f / fc;
                     for ch in 0..3 {
                         let k = base + (ci * fc + cj) * 3 + ch;
-                        if clutter && bg[dk] {
+                        if no_background && bg[dk] {
+                            mask[k] = true;
+                        } else if clutter && bg[dk] {
                             x[k] = grey;
                         } else {
                             x[k] = (x[k] * gain).min(layout.color_weight);
@@ -402,6 +407,7 @@ fn corrupt(
             }
         }
     }
+    crate::tracker::encoder::inpaint_depth(layout, &mut x, &mut mask, has_color);
     (x, mask)
 }
 

@@ -10,10 +10,10 @@
 //!   than `jump_ratio` times the mass found near the previous estimate (PoseRBPF's
 //!   `check_rot_expectation`); without the jump a wrong first guess would stick for ever.
 
-use crate::geometry::{PoseSamples, RotationGrid, euler_to_rotation, ray_rotation};
+use crate::geometry::{Pose, PoseSamples, RotationGrid, euler_to_rotation, ray_rotation};
 use crate::tracker::bins::GridTables;
 use crate::tracker::{Component, RotationMode};
-use nalgebra::{Matrix3, Matrix4, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Matrix4, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
@@ -50,6 +50,9 @@ pub struct ParticleSet<'a> {
     /// Bin-major histograms (`hist[b * n + p]`), each particle's column sums to 1.
     pub hist: &'a [f32],
     pub tables: &'a GridTables,
+    /// The histograms' frame `H` (the reference camera when the track started): positions are
+    /// in the current reference frame, bins are allocentric in `H`.
+    pub reference_from_hist: Pose,
 }
 
 impl ParticleSet<'_> {
@@ -124,9 +127,11 @@ impl ParticleSet<'_> {
     pub fn orientation_loglik(&self, reference_from_object: &UnitQuaternion<f64>) -> f64 {
         let n = self.n();
         let grid = self.tables.grid;
+        let r_h = self.reference_from_hist.rotation.inverse() * reference_from_object;
         let mut mass = 0.0;
         for p in 0..n {
-            let allo = ray_rotation(&self.positions_m[p]).inverse() * reference_from_object;
+            let t_h = self.reference_from_hist.inverse_transform_point(&Point3::from(self.positions_m[p])).coords;
+            let allo = ray_rotation(&t_h).inverse() * r_h;
             let b = grid.flat_of(&allo);
             mass += self.weights[p] * self.hist[b * n + p] as f64;
         }
@@ -170,8 +175,9 @@ impl ParticleSet<'_> {
             let a = a + (rng.random::<f64>() - 0.5) * s;
             let t = t + (rng.random::<f64>() - 0.5) * s;
             let pos = self.positions_m[p];
-            let rot = ray_rotation(&pos) * euler_to_rotation(e, a, t);
-            poses.push(crate::geometry::Pose::from_parts(Translation3::from(pos), rot));
+            let t_h = self.reference_from_hist.inverse_transform_point(&Point3::from(pos)).coords;
+            let rot = self.reference_from_hist.rotation * ray_rotation(&t_h) * euler_to_rotation(e, a, t);
+            poses.push(Pose::from_parts(Translation3::from(pos), rot));
         }
         let ess = 1.0 / self.weights.iter().map(|w| (w / wsum).powi(2)).sum::<f64>();
         PoseSamples {

@@ -22,7 +22,7 @@
 
 use crate::geometry::{Pose, PoseSamples};
 use crate::mesh::Mesh;
-use crate::tracker::bins::{GridTables, add_pulled, blur, gaussian_kernel, pull};
+use crate::tracker::bins::{GridTables, add_pulled, blur, gaussian_kernel};
 use crate::tracker::codebook::Codebook;
 use crate::tracker::estimate::{EstimateConfig, ParticleSet, summarise_rotation};
 use crate::tracker::motion::{OdometryNoise, brownian, move_with_odometry};
@@ -77,7 +77,7 @@ impl Default for TrackerConfig {
             only_reference_camera: false,
             observation: ObservationConfig::default(),
             estimate: EstimateConfig::default(),
-            lost_similarity: 0.45,
+            lost_similarity: 0.75,
             lost_after_steps: 5,
             brownian_sigma_m: 0.005,
             odometry_noise: OdometryNoise::default(),
@@ -119,8 +119,14 @@ struct TrackState {
     sources: Vec<usize>,
     weights: Vec<f64>,
     hist: Vec<f32>,
+    /// Previous rotation estimate, in the histograms' frame.
     rotation: Option<UnitQuaternion<f64>>,
     estimate: Option<Estimate>,
+    /// The frame of the histograms (the reference camera when the track started). Keeping
+    /// the histograms there avoids re-binning the prior at every robot motion (repeated
+    /// nearest-bin re-binning by rotations below half a bin would never move it at all);
+    /// every view, the reference camera included, is pulled through its own map instead.
+    reference_from_hist: Pose,
 }
 
 impl TrackState {
@@ -134,6 +140,7 @@ impl TrackState {
             weights: &self.weights,
             hist: &self.hist,
             tables,
+            reference_from_hist: self.reference_from_hist,
         }
     }
 }
@@ -381,7 +388,6 @@ impl Tracker {
     }
 
     fn apply_odometry(&mut self, prev: &RobotOdometry, cur: &RobotOdometry) {
-        let mean_from = |s: &TrackState| -> Vector3<f64> { s.set(&self.models[s.model].tables).mean_position() };
         let prev_from_cur_exact = prev.base_from_camera.inverse()
             * prev.odom_from_base.inverse()
             * cur.odom_from_base
@@ -390,7 +396,6 @@ impl Tracker {
             if self.states[i].n() == 0 {
                 continue;
             }
-            let old_mean = mean_from(&self.states[i]);
             let s = &mut self.states[i];
             move_with_odometry(
                 &mut s.positions,
@@ -401,20 +406,7 @@ impl Tracker {
                 &self.config.odometry_noise,
                 &mut self.rng,
             );
-            // re-bin the prior: new bin b reads old bin map[b]
-            let new_mean = prev_from_cur_exact.inverse_transform_point(&Point3::from(old_mean)).coords;
-            let q = crate::geometry::ray_rotation(&old_mean).inverse()
-                * prev_from_cur_exact.rotation
-                * crate::geometry::ray_rotation(&new_mean);
-            if q.angle() > 1e-4 {
-                let tables = self.models[s.model].tables.clone();
-                let map = tables.pull_map(&q);
-                self.scratch.resize(s.hist.len(), 0.0);
-                pull(&mut self.scratch, &s.hist, &map, s.n());
-                std::mem::swap(&mut self.scratch, &mut s.hist);
-                let n = s.n();
-                normalise_columns(&mut s.hist, n);
-            }
+            s.reference_from_hist = prev_from_cur_exact.inverse() * s.reference_from_hist;
         }
     }
 
@@ -469,6 +461,7 @@ impl Tracker {
                         self.states[i].weights.clear();
                         self.states[i].hist.clear();
                         self.states[i].rotation = None;
+                        self.states[i].reference_from_hist = Pose::identity();
                         self.tracks[i].status = TrackStatus::Initialising;
                         self.tracks[i].weak_steps = 0;
                         i
@@ -493,6 +486,7 @@ impl Tracker {
                             hist: Vec::new(),
                             rotation: None,
                             estimate: None,
+                            reference_from_hist: Pose::identity(),
                         });
                         report.tracks_created.push(id);
                         self.states.len() - 1
@@ -594,6 +588,8 @@ impl Tracker {
         let mut seen_by = Vec::new();
         let mut in_some_image = false;
         let mean_ref = self.states[ti].set(&tables).mean_position();
+        let reference_from_hist = self.states[ti].reference_from_hist;
+        let mean_hist = reference_from_hist.inverse_transform_point(&Point3::from(mean_ref)).coords;
         for (frame, view_from_ref, _ci) in views {
             let positions: Vec<Vector3<f64>> =
                 self.states[ti].positions.iter().map(|p| (view_from_ref * Point3::from(*p)).coords).collect();
@@ -621,12 +617,14 @@ impl Tracker {
             let t0 = Instant::now();
             best = best.max(ev.best_similarity);
             seen_by.push(frame.camera.clone());
-            if frame.camera == self.reference {
+            // histogram bin b (frame H) reads this view's bin map[b]
+            let q = crate::geometry::ray_rotation(&mean_view).inverse()
+                * view_from_ref.rotation
+                * reference_from_hist.rotation
+                * crate::geometry::ray_rotation(&mean_hist);
+            if q.angle() < 1e-9 {
                 self.fused.par_iter_mut().zip(ev.loglik.par_iter()).for_each(|(f, l)| *f += l);
             } else {
-                let q = crate::geometry::ray_rotation(&mean_view).inverse()
-                    * view_from_ref.rotation
-                    * crate::geometry::ray_rotation(&mean_ref);
                 let map = tables.pull_map(&q);
                 add_pulled(&mut self.fused, &ev.loglik, &map, n);
             }
@@ -717,9 +715,25 @@ impl Tracker {
             let s = &self.states[ti];
             let set = s.set(&tables);
             let mean = set.mean_position();
+            let mean_hist = s.reference_from_hist.inverse_transform_point(&Point3::from(mean)).coords;
             let (tcov, tstd) = set.translation_covariance();
             let mixture = set.mixture();
-            let summary = summarise_rotation(&tables.grid, &mixture, &mean, s.rotation.as_ref(), &self.config.estimate);
+            let mut summary =
+                summarise_rotation(&tables.grid, &mixture, &mean_hist, s.rotation.as_ref(), &self.config.estimate);
+            let rotation_hist = summary.rotation;
+            let to_ref = s.reference_from_hist.rotation;
+            summary.rotation = to_ref * rotation_hist;
+            for m in &mut summary.modes {
+                let q = to_ref
+                    * UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                        m.rotation_xyzw[3],
+                        m.rotation_xyzw[0],
+                        m.rotation_xyzw[1],
+                        m.rotation_xyzw[2],
+                    ));
+                let v = q.quaternion();
+                m.rotation_xyzw = [v.i, v.j, v.k, v.w];
+            }
             let mut cov6 = [[0.0; 6]; 6];
             for r in 0..3 {
                 for c in 0..3 {
@@ -737,7 +751,7 @@ impl Tracker {
                 status,
                 stamp_ns: self.stamp_ns,
             };
-            (est, summary.rotation)
+            (est, rotation_hist)
         };
         self.states[ti].rotation = Some(est.1);
         self.states[ti].estimate = Some(est.0);

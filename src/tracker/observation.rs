@@ -43,7 +43,7 @@ impl Default for ObservationConfig {
         Self {
             sigma: 0.06,
             loglik_floor: -12.0,
-            gate_similarity: 0.35,
+            gate_similarity: 0.55,
             depth_sigma: 0.15,
             depth_floor: -6.0,
         }
@@ -110,14 +110,17 @@ pub fn encode_particles(
                 zero_is_far: false,
             };
             let share = sample_crop(&layout, view.depth, view.color, &params, &mut x, &mut m);
+            // depth consistency (below) reads the raw cells; the encoder gets inpainted ones
+            let raw: Vec<(f32, bool)> = x[..f * f].iter().copied().zip(m[..f * f].iter().copied()).collect();
+            crate::tracker::encoder::inpaint_depth(&layout, &mut x, &mut m, view.color.is_some());
             // depth consistency: share of the central cells whose depth lies inside the box
             let (mut inside, mut total) = (0usize, 0usize);
             for i in f / 4..f - f / 4 {
                 for j in f / 4..f - f / 4 {
                     let c = i * f + j;
-                    if !m[c] {
+                    if !raw[c].1 {
                         total += 1;
-                        if x[c] > 0.0 && x[c] < 1.0 {
+                        if raw[c].0 > 0.0 && raw[c].0 < 1.0 {
                             inside += 1;
                         }
                     }
