@@ -68,11 +68,7 @@ fn bench(c: &mut Criterion) {
             object.n_parts()
         );
         c.bench_function(&label, |b| {
-            b.iter(|| {
-                pool.install(|| {
-                    decide(&object, &gripper, &estimate, black_box(&s), &query).expect("decision")
-                })
-            })
+            b.iter(|| pool.install(|| decide(&object, &gripper, &estimate, black_box(&s), &query).expect("decision")))
         });
     }
 }

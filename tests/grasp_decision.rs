@@ -4,8 +4,8 @@
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 use pregrasp::geometry::{Pose, PoseSamples};
 use pregrasp::grasp::{
-    CandidateView, DecisionQuery, FailureTest, Grasp, GraspObject, Gripper, Motion, SupportPlane,
-    Verdict, decide, success_on_pose, suggest_view,
+    CandidateView, DecisionQuery, FailureTest, Grasp, GraspObject, Gripper, Motion, SupportPlane, Verdict, decide,
+    success_on_pose, suggest_view,
 };
 use pregrasp::mesh::{self, Mesh};
 use rand::{Rng, SeedableRng};
@@ -41,7 +41,7 @@ fn standing(object: &GraspObject) -> Pose {
 /// (std of the rotation vector per reference axis), applied on the left.
 fn gaussian_samples(estimate: &Pose, t_std_m: [f64; 3], r_std_rad: [f64; 3], n: usize, seed: u64) -> PoseSamples {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let std = Normal::new(0.0, 1.0).unwrap();
+    let std = Normal::new(0.0, 1.0).expect("unit normal");
     let poses = (0..n)
         .map(|_| {
             let t = Vector3::from_fn(|i, _| std.sample(&mut rng) * t_std_m[i]);
@@ -64,7 +64,7 @@ fn rotate_about_origin(estimate: &Pose, r: &UnitQuaternion<f64>, t: &Vector3<f64
 }
 
 fn top_grasp(object: &GraspObject, depth_m: f64) -> Grasp {
-    Grasp::new(object, &-Vector3::z(), &Vector3::x(), depth_m, "top, close x").unwrap()
+    Grasp::new(object, &-Vector3::z(), &Vector3::x(), depth_m, "top, close x").expect("top grasp")
 }
 
 fn query(grasp: Option<Grasp>) -> DecisionQuery {
@@ -89,15 +89,31 @@ fn tiny_uncertainty_around_a_centred_can_grasps() {
     assert_eq!(d.n_samples, 1000);
     assert!(!d.candidates.is_empty());
     // ranked best first; a grasp from below (into the table) is among them and scores 0
-    assert!(d.candidates.windows(2).all(|w| w[0].p_success >= w[1].p_success));
+    assert!(
+        d.candidates
+            .windows(2)
+            .all(|w| { w[0].n_samples > w[1].n_samples || w[0].p_success >= w[1].p_success })
+    );
+    assert_eq!(d.candidates[0].n_samples, 1000);
+    assert_eq!(d.candidates[0].grasp, d.grasp);
+    assert!(
+        d.grasp.label.starts_with("top") || d.grasp.label.starts_with("side"),
+        "{}",
+        d.grasp.label
+    );
     let from_below = d
         .candidates
         .iter()
         .find(|c| Vector3::from(c.grasp.approach_in_object).z > 0.9)
         .expect("a candidate approaching from below");
     assert_eq!(from_below.p_success, 0.0);
+    assert!(
+        from_below.grasp.label.starts_with("from below"),
+        "{}",
+        from_below.grasp.label
+    );
     // the planned gripper pose works on the estimate itself
-    assert!(success_on_pose(&can, &gripper, &d.reference_from_gripper, &est, Some(&table())));
+    assert!(success_on_pose(&can, &gripper, &d.reference_from_gripper, &est, Some(&table())).unwrap());
 }
 
 #[test]
@@ -129,7 +145,12 @@ fn translation_spread_beyond_the_finger_clearance_observes_and_names_the_closing
     assert_eq!(top.test, FailureTest::Approach, "{:#?}", d.reasons);
     assert!(top.failure_share > 0.2);
     let driver = &top.drivers[0];
-    assert_eq!((driver.motion, driver.axis.as_str()), (Motion::Translation, "gripper_x"), "{:#?}", top.drivers);
+    assert_eq!(
+        (driver.motion, driver.axis.as_str()),
+        (Motion::Translation, "gripper_x"),
+        "{:#?}",
+        top.drivers
+    );
     assert!(driver.failure_dependence > 0.3, "{driver:?}");
     // the closing axis is the reference x here
     assert!(driver.axis_in_reference[0].abs() > 0.99);
@@ -149,9 +170,8 @@ fn translation_spread_beyond_the_finger_clearance_observes_and_names_the_closing
         name: "from_above".into(),
         reference_from_camera: Pose::from_parts(
             Translation3::new(0.6, 0.1, 1.0),
-            UnitQuaternion::rotation_between(&Vector3::z(), &-Vector3::z()).unwrap_or_else(|| {
-                UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
-            }),
+            UnitQuaternion::rotation_between(&Vector3::z(), &-Vector3::z())
+                .unwrap_or_else(|| UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)),
         ),
     };
     let s = suggest_view(&d, &[look_along_x, look_down]).unwrap();
@@ -167,7 +187,11 @@ fn lateral_spread_beyond_the_groove_fails_alignment_along_gripper_y() {
     let samples = gaussian_samples(&est, [0.001, 0.02, 0.001], [0.0; 3], 1000, 4);
     let d = decide(&can, &gripper, &est, &samples, &query(Some(top_grasp(&can, 0.03)))).unwrap();
     assert_eq!(d.decision, Verdict::Observe);
-    let align = d.reasons.iter().find(|r| r.test == FailureTest::Alignment).expect("alignment fails");
+    let align = d
+        .reasons
+        .iter()
+        .find(|r| r.test == FailureTest::Alignment)
+        .expect("alignment fails");
     assert!(align.failure_share > 0.3, "{:#?}", d.reasons);
     assert_eq!(align.drivers[0].axis, "gripper_y");
     assert_eq!(align.drivers[0].motion, Motion::Translation);
@@ -210,7 +234,14 @@ fn rotation_about_the_cans_axis_grasps_about_the_cracker_boxs_long_axis_observes
     // the cracker box stands on its small face: its long axis (z, 213 mm) is vertical
     let cracker = GraspObject::new(&ycb("003_cracker_box")).unwrap();
     let est = standing(&cracker);
-    let d = decide(&cracker, &gripper, &est, &spin_samples(&est, spread, 1000, 7), &query(None)).unwrap();
+    let d = decide(
+        &cracker,
+        &gripper,
+        &est,
+        &spin_samples(&est, spread, 1000, 7),
+        &query(None),
+    )
+    .unwrap();
     assert_eq!(d.decision, Verdict::Observe);
     assert!(d.p_success < 0.6, "{}", d.p_success);
     let driver = d.driving_axes().next().expect("a driving axis");
@@ -218,7 +249,14 @@ fn rotation_about_the_cans_axis_grasps_about_the_cracker_boxs_long_axis_observes
     // the rotation that drives it is about the vertical (reference z)
     assert!(driver.axis_in_reference[2].abs() > 0.99, "{driver:?}");
     // but a small spread about the same axis still grasps: the flat pads square the box
-    let d = decide(&cracker, &gripper, &est, &spin_samples(&est, 3f64.to_radians(), 1000, 8), &query(None)).unwrap();
+    let d = decide(
+        &cracker,
+        &gripper,
+        &est,
+        &spin_samples(&est, 3f64.to_radians(), 1000, 8),
+        &query(None),
+    )
+    .unwrap();
     assert_eq!(d.decision, Verdict::Grasp, "{:#?}", d.reasons);
 }
 
@@ -278,7 +316,11 @@ fn two_modes_box_and_its_turned_copy_p_reflects_both() {
             effective_sample_size: 1000.0,
         };
         let d = decide(&bx, &gripper, &est, &samples, &query(Some(grasp.clone()))).unwrap();
-        assert!((d.p_success - expect).abs() < 0.03, "p {} expected {expect}", d.p_success);
+        assert!(
+            (d.p_success - expect).abs() < 0.03,
+            "p {} expected {expect}",
+            d.p_success
+        );
         if expect < 0.9 {
             assert_eq!(d.decision, Verdict::Observe);
             assert_eq!(d.reasons[0].test, FailureTest::Approach);
@@ -312,4 +354,22 @@ fn bad_queries_are_errors_not_panics() {
     // an object wider than the stroke on every axis has no candidate
     let big = GraspObject::new(&mesh::builtin_box([0.2, 0.2, 0.2], [[1, 1, 1], [2, 2, 2]])).unwrap();
     assert!(decide(&big, &gripper, &standing(&big), &samples, &query(None)).is_err());
+}
+
+#[test]
+fn pads_above_the_object_fail_contact_and_a_palm_too_deep_fails_the_approach() {
+    let gripper = Gripper::default_parallel_jaw();
+    let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
+    let est = standing(&can);
+    let samples = gaussian_samples(&est, [0.001; 3], [0.003; 3], 300, 13);
+    // TCP 3 cm above the lid: the pads (35 mm long) close on air
+    let d = decide(&can, &gripper, &est, &samples, &query(Some(top_grasp(&can, -0.03)))).unwrap();
+    assert_eq!(d.p_success, 0.0);
+    assert_eq!(d.reasons[0].test, FailureTest::Contact, "{:#?}", d.reasons);
+    assert_eq!(d.reasons[0].failure_share, 1.0);
+    // TCP deeper than the fingers reach: the palm lands on the lid
+    let deep = top_grasp(&can, gripper.reach_m() + 0.01);
+    let d = decide(&can, &gripper, &est, &samples, &query(Some(deep))).unwrap();
+    assert_eq!(d.p_success, 0.0);
+    assert_eq!(d.reasons[0].test, FailureTest::Approach, "{:#?}", d.reasons);
 }

@@ -59,7 +59,11 @@ pub fn calibration_report(records: &[CalibrationRecord]) -> CalibrationReport {
     let mut sum_ok = [0usize; N_BINS];
     let mut count = [0usize; N_BINS];
     for r in records {
-        let p = if r.p_success.is_finite() { r.p_success.clamp(0.0, 1.0) } else { 0.0 };
+        let p = if r.p_success.is_finite() {
+            r.p_success.clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
         let b = ((p * N_BINS as f64) as usize).min(N_BINS - 1);
         sum_p[b] += p;
         sum_ok[b] += r.succeeded as usize;
@@ -85,7 +89,11 @@ pub fn calibration_report(records: &[CalibrationRecord]) -> CalibrationReport {
     let false_grasps = records.iter().filter(|r| r.decided_grasp && !r.succeeded).count();
     CalibrationReport {
         ece,
-        false_grasp_rate: if n_grasp == 0 { 0.0 } else { false_grasps as f64 / n_grasp as f64 },
+        false_grasp_rate: if n_grasp == 0 {
+            0.0
+        } else {
+            false_grasps as f64 / n_grasp as f64
+        },
         grasp_rate: if n == 0 { 0.0 } else { n_grasp as f64 / n as f64 },
         reliability,
         n_decisions: n,

@@ -10,6 +10,9 @@ use serde::{Deserialize, Serialize};
 pub const CANDIDATE_MIN_CLEARANCE_M: f64 = 0.004;
 /// How far the palm stays from the object's surface at the deepest generated grasp.
 pub const CANDIDATE_PALM_MARGIN_M: f64 = 0.008;
+/// A second, shallower candidate sits at this share of the deepest depth (more room for the
+/// palm when the pose is uncertain along the approach, less pad on the object).
+pub const CANDIDATE_SHALLOW_SHARE: f64 = 0.6;
 
 /// A grasp: where the gripper frame sits on the object. The gripper approaches along its +z
 /// and closes along its x (see `gripper.rs`).
@@ -46,7 +49,9 @@ impl Grasp {
             .try_normalize(1e-9)
             .ok_or_else(|| GraspError::InvalidQuery("closing axis parallel to the approach".into()))?;
         if !depth_m.is_finite() {
-            return Err(GraspError::InvalidQuery(format!("depth_m must be finite, got {depth_m}")));
+            return Err(GraspError::InvalidQuery(format!(
+                "depth_m must be finite, got {depth_m}"
+            )));
         }
         let y = z.cross(&x);
         let (x_lo, x_hi) = object.extent_along(&x);
@@ -55,10 +60,7 @@ impl Grasp {
         let tcp = x * (x_lo + x_hi) * 0.5 + y * (y_lo + y_hi) * 0.5 + z * (z_lo + depth_m);
         let rot = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
         Ok(Self {
-            object_from_gripper: Pose::from_parts(
-                Translation3::from(tcp),
-                UnitQuaternion::from_rotation_matrix(&rot),
-            ),
+            object_from_gripper: Pose::from_parts(Translation3::from(tcp), UnitQuaternion::from_rotation_matrix(&rot)),
             approach_in_object: [z.x, z.y, z.z],
             closing_in_object: [x.x, x.y, x.z],
             depth_m,
@@ -99,14 +101,23 @@ impl Grasp {
 /// (+- each axis) with each of the 2 other axes as closing axis, kept where the object's width
 /// along the closing axis fits the stroke with [`CANDIDATE_MIN_CLEARANCE_M`] on each side.
 /// The TCP goes to the middle of the object along the approach, or as deep as the fingers
-/// reach. Top/side grasps relative to a table are among them; the decision ranks them.
+/// reach, and (where different by more than 2 mm) to [`CANDIDATE_SHALLOW_SHARE`] of that.
+/// Top/side grasps relative to a table are among them; the decision ranks them.
 pub fn generate_candidates(object: &GraspObject, gripper: &Gripper) -> Vec<Grasp> {
     let axes = object.principal_axes();
     let mut out = Vec::new();
     for i in 0..3 {
         let a: Vector3<f64> = axes.column(i).into();
         let (lo, hi) = object.extent_along(&a);
-        let depth = ((hi - lo) * 0.5).min(gripper.reach_m() - CANDIDATE_PALM_MARGIN_M).max(0.0);
+        let deep = ((hi - lo) * 0.5)
+            .min(gripper.reach_m() - CANDIDATE_PALM_MARGIN_M)
+            .max(0.0);
+        let shallow = ((gripper.reach_m() - CANDIDATE_PALM_MARGIN_M) * CANDIDATE_SHALLOW_SHARE).max(0.0);
+        let depths: Vec<f64> = if deep - shallow > 0.002 {
+            vec![deep, shallow]
+        } else {
+            vec![deep]
+        };
         for sign in [1.0, -1.0] {
             for j in 0..3 {
                 if j == i {
@@ -117,12 +128,15 @@ pub fn generate_candidates(object: &GraspObject, gripper: &Gripper) -> Vec<Grasp
                 if chi - clo + 2.0 * CANDIDATE_MIN_CLEARANCE_M > gripper.max_opening_m {
                     continue;
                 }
-                let label = format!(
-                    "approach {}a{i}, close a{j}",
-                    if sign > 0.0 { "+" } else { "-" }
-                );
-                if let Ok(g) = Grasp::new(object, &(a * sign), &c, depth, &label) {
-                    out.push(g);
+                for &depth in &depths {
+                    let label = format!(
+                        "approach {}a{i}, close a{j}, depth {:.0} mm",
+                        if sign > 0.0 { "+" } else { "-" },
+                        depth * 1e3
+                    );
+                    if let Ok(g) = Grasp::new(object, &(a * sign), &c, depth, &label) {
+                        out.push(g);
+                    }
                 }
             }
         }
@@ -141,8 +155,9 @@ mod tests {
         let o = GraspObject::new(&m).unwrap();
         let g = Gripper::default_parallel_jaw();
         let c = generate_candidates(&o, &g);
-        // closing along y (0.06) from 4 approach directions (+-x, +-z); never along x or z
-        assert_eq!(c.len(), 4, "{:?}", c.iter().map(|g| &g.label).collect::<Vec<_>>());
+        // closing along y (0.06) from 4 approach directions (+-x, +-z), 2 depths each; never
+        // along x or z
+        assert_eq!(c.len(), 8, "{:?}", c.iter().map(|g| &g.label).collect::<Vec<_>>());
         for k in &c {
             assert!((k.width_m - 0.06).abs() < 1e-6);
             let x = k.object_from_gripper.rotation * Vector3::x();

@@ -15,6 +15,10 @@ use serde::{Deserialize, Serialize};
 pub const DEFAULT_N_SAMPLES: usize = 1000;
 /// Default threshold on the lower bound of the 95% interval.
 pub const DEFAULT_THRESHOLD: f64 = 0.9;
+/// Generated candidates are first screened on this many samples...
+pub const SCREEN_SAMPLES: usize = 200;
+/// ...and the best this many are evaluated on all samples.
+pub const SCREEN_KEEP: usize = 3;
 /// z of the normal distribution for a two-sided 95% interval.
 const Z95: f64 = 1.959_963_984_540_054;
 /// A pad contact counts as first contact when it comes this close after the finger's.
@@ -130,6 +134,8 @@ pub struct RankedGrasp {
     pub grasp: Grasp,
     pub p_success: f64,
     pub ci95: [f64; 2],
+    /// Samples it was evaluated on ([`SCREEN_SAMPLES`] when screened out early).
+    pub n_samples: usize,
 }
 
 /// The answer.
@@ -160,8 +166,14 @@ impl Decision {
         gripper: &Gripper,
         reference_from_object: &Pose,
         plane: Option<&SupportPlane>,
-    ) -> bool {
-        success_on_pose(object, gripper, &self.reference_from_gripper, reference_from_object, plane)
+    ) -> Result<bool, GraspError> {
+        success_on_pose(
+            object,
+            gripper,
+            &self.reference_from_gripper,
+            reference_from_object,
+            plane,
+        )
     }
 
     /// Axes driving the failures overall (dependence >= [`DRIVER_MIN_DEPENDENCE`]).
@@ -208,6 +220,8 @@ struct GripperShapes {
     pad_pose: [PPose; 2],
     approach_m: f32,
     closing_travel_m: f32,
+    /// Lowest z of the pad in the finger's local frame.
+    pad_zone_z: f32,
     cos_capture: f64,
 }
 
@@ -231,6 +245,7 @@ impl GripperShapes {
             ],
             pad_pose: [at(pad_p), at(pad_m)],
             approach_m: g.approach_distance_m as f32,
+            pad_zone_z: (g.finger_size_m[2] * 0.5 - g.pad.length_m) as f32,
             closing_travel_m: (g.max_opening_m - g.min_opening_m) as f32,
             cos_capture: g.pad.capture_angle_deg.to_radians().cos(),
         }
@@ -258,8 +273,7 @@ impl GripperShapes {
             let hit = if self.approach_m > 0.0 {
                 let start = pose.prepend_translation(back);
                 let opts = ShapeCastOptions::with_max_time_of_impact(self.approach_m);
-                query::cast_shapes(&start, PVector::Z, shape, obj_pose, PVector::ZERO, obj, opts)
-                    .map(|h| h.is_some())
+                query::cast_shapes(&start, PVector::Z, shape, obj_pose, PVector::ZERO, obj, opts).map(|h| h.is_some())
             } else {
                 query::intersection_test(pose, shape, obj_pose, obj).map(|i| i.intersecting)
             };
@@ -282,25 +296,31 @@ impl GripperShapes {
                     .ok()
                     .flatten()
             };
-            let Some(pad) = cast(&self.pad_pose[k], &self.pad) else {
-                return (false, false);
-            };
-            if pad.time_of_impact <= 0.0 {
-                // already touching or inside at full opening: not a closing contact
-                return (false, false);
-            }
             let Some(finger) = cast(&self.finger_pose[k], &self.finger) else {
                 return (false, false);
             };
-            if pad.time_of_impact > finger.time_of_impact + FIRST_CONTACT_TOLERANCE_M {
+            if finger.time_of_impact <= 0.0 {
+                // already touching or inside at full opening: not a closing contact
                 return (false, false);
             }
+            // the first touch lies on the pad when the finger's witness is in the pad zone of
+            // its inner face; otherwise the pad must touch no later than the finger
+            let pad_toi = if finger.witness1.z >= self.pad_zone_z && finger.normal1.x * -side > 0.99 {
+                finger.time_of_impact
+            } else {
+                match cast(&self.pad_pose[k], &self.pad) {
+                    Some(pad) if pad.time_of_impact <= finger.time_of_impact + FIRST_CONTACT_TOLERANCE_M => {
+                        pad.time_of_impact
+                    }
+                    _ => return (false, false),
+                }
+            };
             if !aligned {
                 continue;
             }
             // the pad where it first touches; the groove (the middle of the pad) at the same
             // place: does it touch as well (within the tolerance), and at what normal?
-            let at = PPose::from_translation(self.pad_pose[k].translation + vel * pad.time_of_impact);
+            let at = PPose::from_translation(self.pad_pose[k].translation + vel * pad_toi);
             let near = |shape: &Cuboid| {
                 query::contact(&at, shape, obj_pose, obj, CONTACT_PREDICTION_M)
                     .ok()
@@ -380,10 +400,7 @@ pub fn evaluate_pose(
     let shapes = GripperShapes::new(gripper);
     let gripper_from_reference = reference_from_gripper.inverse();
     let table_clear = match plane {
-        Some(pl) => {
-            table_clearance_m(gripper, &pl.transformed(&gripper_from_reference))?
-                >= gripper.table_clearance_m
-        }
+        Some(pl) => table_clearance_m(gripper, &pl.transformed(&gripper_from_reference))? >= gripper.table_clearance_m,
         None => true,
     };
     Ok(evaluate_in_gripper(
@@ -395,22 +412,20 @@ pub fn evaluate_pose(
 }
 
 /// Whether the grasp planned at `reference_from_gripper` succeeds on the object at
-/// `reference_from_object` (eval uses it on ground truth). An invalid plane counts as failure.
+/// `reference_from_object` (eval uses it on ground truth). Errors: an invalid plane.
 pub fn success_on_pose(
     object: &GraspObject,
     gripper: &Gripper,
     reference_from_gripper: &Pose,
     reference_from_object: &Pose,
     plane: Option<&SupportPlane>,
-) -> bool {
-    evaluate_pose(object, gripper, reference_from_gripper, reference_from_object, plane)
-        .map(|o| o.success())
-        .unwrap_or(false)
+) -> Result<bool, GraspError> {
+    evaluate_pose(object, gripper, reference_from_gripper, reference_from_object, plane).map(|o| o.success())
 }
 
 /// Wilson score interval for a proportion `p` observed on `n` (possibly fractional) trials.
 pub fn wilson_interval(p: f64, n: f64) -> [f64; 2] {
-    if !(n > 0.0) || !p.is_finite() {
+    if n.is_nan() || n <= 0.0 || !p.is_finite() {
         return [0.0, 1.0];
     }
     let z2 = Z95 * Z95;
@@ -437,10 +452,7 @@ fn evaluate_grasp(
     let reference_from_gripper = estimate * grasp.object_from_gripper;
     let gripper_from_reference = reference_from_gripper.inverse();
     let table_clear = match plane {
-        Some(pl) => {
-            table_clearance_m(gripper, &pl.transformed(&gripper_from_reference))?
-                >= gripper.table_clearance_m
-        }
+        Some(pl) => table_clearance_m(gripper, &pl.transformed(&gripper_from_reference))? >= gripper.table_clearance_m,
         None => true,
     };
     let outcomes = poses
@@ -455,8 +467,9 @@ fn evaluate_grasp(
 
 /// Plans the grasp on `estimate` (reference_from_object) and checks it on the samples.
 ///
-/// With `query.grasp == None`, the candidates of [`generate_candidates`] are evaluated on the
-/// same samples and the one with the highest p_success is chosen (all are returned, ranked).
+/// With `query.grasp == None`, the candidates of [`generate_candidates`] are screened on the
+/// first [`SCREEN_SAMPLES`] samples, the best [`SCREEN_KEEP`] evaluated on all, and the one
+/// with the highest p_success is chosen (all are returned, fully evaluated ones first).
 /// `p_success` is the share of samples passing every test; its 95% Wilson interval uses the
 /// effective sample size (scaled to the samples used, at most their number). The verdict is
 /// `Grasp` only when the interval's lower bound reaches `query.threshold`.
@@ -507,22 +520,46 @@ pub fn decide(
                     gripper.max_opening_m
                 )));
             }
-            let mut ranked: Vec<(RankedGrasp, Evaluated)> = Vec::new();
+            let cands = label_by_plane(cands, estimate, plane);
+            // screen every candidate on a prefix of the samples, then evaluate the best few
+            // on all of them
+            let n_screen = SCREEN_SAMPLES.min(n);
+            let screen_ess = ess * n_screen as f64 / n as f64;
+            let mut ranked: Vec<(RankedGrasp, Option<Evaluated>)> = Vec::new();
             for g in cands {
-                let e = evaluate_grasp(object, gripper, &shapes, estimate, poses, &g, plane)?;
+                let e = evaluate_grasp(object, gripper, &shapes, estimate, &poses[..n_screen], &g, plane)?;
                 let p = share(&e.outcomes, |o| o.success());
                 ranked.push((
                     RankedGrasp {
                         grasp: g,
                         p_success: p,
-                        ci95: wilson_interval(p, ess),
+                        ci95: wilson_interval(p, screen_ess),
+                        n_samples: n_screen,
                     },
-                    e,
+                    None,
                 ));
             }
             ranked.sort_by(|a, b| b.0.p_success.total_cmp(&a.0.p_success));
+            if n_screen < n {
+                for (r, e) in ranked.iter_mut().take(SCREEN_KEEP) {
+                    let full = evaluate_grasp(object, gripper, &shapes, estimate, poses, &r.grasp, plane)?;
+                    r.p_success = share(&full.outcomes, |o| o.success());
+                    r.ci95 = wilson_interval(r.p_success, ess);
+                    r.n_samples = n;
+                    *e = Some(full);
+                }
+                ranked.sort_by(|a, b| {
+                    (b.0.n_samples, b.0.p_success)
+                        .partial_cmp(&(a.0.n_samples, a.0.p_success))
+                        .unwrap_or(std::cmp::Ordering::Equal)
+                });
+            }
             let list: Vec<RankedGrasp> = ranked.iter().map(|(r, _)| r.clone()).collect();
             let (best, e) = ranked.swap_remove(0);
+            let e = match e {
+                Some(e) => e,
+                None => evaluate_grasp(object, gripper, &shapes, estimate, poses, &best.grasp, plane)?,
+            };
             (best.grasp, e, list)
         }
     };
@@ -551,6 +588,29 @@ pub fn decide(
         uncertainty,
         candidates,
     })
+}
+
+/// Prefixes candidate labels with `top`, `side` or `from below` relative to the table.
+fn label_by_plane(cands: Vec<Grasp>, estimate: &Pose, plane: Option<&SupportPlane>) -> Vec<Grasp> {
+    let Some(Ok((n, _))) = plane.map(|p| p.unit()) else {
+        return cands;
+    };
+    cands
+        .into_iter()
+        .map(|mut g| {
+            let a = estimate.rotation * Vector3::from(g.approach_in_object);
+            let down = -a.dot(&n);
+            let kind = if down > 0.7 {
+                "top"
+            } else if down < -0.7 {
+                "from below"
+            } else {
+                "side"
+            };
+            g.label = format!("{kind}: {}", g.label);
+            g
+        })
+        .collect()
 }
 
 fn share(outcomes: &[PoseOutcome], f: impl Fn(&PoseOutcome) -> bool) -> f64 {
@@ -610,7 +670,13 @@ fn uncertainty_coefficient(flag: &[bool], x: &[f64]) -> f64 {
     if n < 2 * DEPENDENCE_BINS {
         return 0.0;
     }
-    let h = |p: f64| if p <= 0.0 || p >= 1.0 { 0.0 } else { -(p * p.log2() + (1.0 - p) * (1.0 - p).log2()) };
+    let h = |p: f64| {
+        if p <= 0.0 || p >= 1.0 {
+            0.0
+        } else {
+            -(p * p.log2() + (1.0 - p) * (1.0 - p).log2())
+        }
+    };
     let pf = flag.iter().filter(|&&f| f).count() as f64 / n as f64;
     let h_fail = h(pf);
     if h_fail < 1e-9 {

@@ -260,7 +260,10 @@ mod tests {
         assert!(err.contains("missing field"), "{err}");
         let mut v: serde_json::Value = serde_json::from_str(&g.to_json()).unwrap();
         v["stroke"] = serde_json::json!(1.0);
-        assert!(Gripper::from_json(&v.to_string()).is_err(), "unknown fields are rejected");
+        assert!(
+            Gripper::from_json(&v.to_string()).is_err(),
+            "unknown fields are rejected"
+        );
     }
 
     #[test]

@@ -37,8 +37,8 @@ pub mod view;
 pub use calibration::{CalibrationRecord, CalibrationReport, ReliabilityBin, calibration_report};
 pub use candidates::{Grasp, generate_candidates};
 pub use decision::{
-    AxisDriver, Decision, DecisionQuery, FailureTest, Motion, PoseOutcome, RankedGrasp, Reason,
-    Verdict, decide, evaluate_pose, success_on_pose, wilson_interval,
+    AxisDriver, Decision, DecisionQuery, FailureTest, Motion, PoseOutcome, RankedGrasp, Reason, Verdict, decide,
+    evaluate_pose, success_on_pose, wilson_interval,
 };
 pub use gripper::{Gripper, PadGeometry};
 pub use object::{GraspObject, SolidKind};
@@ -54,10 +54,7 @@ pub enum GraspError {
     #[error("gripper JSON: {0}")]
     GripperJson(#[from] serde_json::Error),
     #[error("reading gripper file {path}: {source}")]
-    GripperFile {
-        path: String,
-        source: std::io::Error,
-    },
+    GripperFile { path: String, source: std::io::Error },
     #[error("invalid object mesh: {0}")]
     InvalidMesh(String),
     #[error("invalid query: {0}")]

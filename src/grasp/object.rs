@@ -68,8 +68,7 @@ impl GraspObject {
 
     /// A solid of the given kind. Cached per (mesh content hash, kind).
     pub fn with_kind(mesh: &Mesh, kind: SolidKind) -> Result<Self, GraspError> {
-        mesh.validate()
-            .map_err(|e| GraspError::InvalidMesh(e.to_string()))?;
+        mesh.validate().map_err(|e| GraspError::InvalidMesh(e.to_string()))?;
         let key = (mesh.content_hash(), kind);
         if let Some(inner) = cache().lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
             return Ok(Self(inner.clone()));
@@ -126,8 +125,7 @@ fn build(mesh: &Mesh, content_hash: String, kind: SolidKind) -> Result<Inner, Gr
         .collect();
     let full = parry3d::shape::ConvexPolyhedron::from_convex_hull(&points)
         .ok_or_else(|| GraspError::InvalidMesh("the convex hull is degenerate (flat mesh?)".into()))?;
-    let hull = parry3d::shape::ConvexPolyhedron::from_convex_hull(&support_points(full.points()))
-        .unwrap_or(full);
+    let hull = parry3d::shape::ConvexPolyhedron::from_convex_hull(&support_points(full.points())).unwrap_or(full);
     let hull_vertices_m: Vec<Point3<f64>> = hull
         .points()
         .iter()

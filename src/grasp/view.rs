@@ -56,10 +56,7 @@ pub fn suggest_view(decision: &Decision, views: &[CandidateView]) -> Option<View
             (v.name.clone(), s)
         })
         .collect();
-    let best = scores
-        .iter()
-        .max_by(|a, b| a.1.total_cmp(&b.1))
-        .cloned()?;
+    let best = scores.iter().max_by(|a, b| a.1.total_cmp(&b.1)).cloned()?;
     Some(ViewSuggestion {
         name: best.0,
         score: best.1,
