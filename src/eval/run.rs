@@ -25,7 +25,7 @@ use crate::grasp::{self, DecisionQuery, GraspObject, Gripper, SupportPlane, Verd
 use crate::mesh::Mesh;
 use crate::render::Renderer;
 use crate::tracker::{
-    CameraFrame, CameraMount, Codebook, CodebookConfig, Detection, RobotOdometry, TrackStatus, Tracker, TrackerConfig,
+    CameraFrame, CameraMount, Codebook, CodebookConfig, RobotOdometry, TrackStatus, Tracker, TrackerConfig,
 };
 use rand::SeedableRng;
 use std::collections::BTreeMap;
@@ -257,11 +257,6 @@ fn frames_of_step(
             .detections(cam, frame_id, seed)
             .into_iter()
             .filter(|d| known.contains_key(&d.object))
-            .map(|d| Detection {
-                object: d.object,
-                bbox_xywh_px: d.bbox_xywh_px,
-                score: d.score,
-            })
             .collect();
         frames.push(CameraFrame {
             camera: cam.clone(),
@@ -484,7 +479,8 @@ fn decide_once(
         &decision.reference_from_gripper,
         &truth.reference_from_object,
         plane_true.as_ref(),
-    );
+    )
+    .map_err(|e| EvalError::Grasp(e.to_string()))?;
     Ok(Some(DecisionOutcome {
         p_success: decision.p_success,
         grasp: decision.decision == Verdict::Grasp,
