@@ -24,6 +24,7 @@ fn config(mode: Mode, cache: &Path, decide: bool) -> EvalConfig {
         tracker: TrackerConfig::default(),
         detection_seed: 0,
         max_frames: None,
+        frame_stride: 1,
         decide: decide.then(|| {
             let mut d = DecideConfig::new(Gripper::default_parallel_jaw());
             d.n_samples = 200;

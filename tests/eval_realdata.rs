@@ -30,6 +30,7 @@ fn real_mug_is_tracked_from_its_detection_box() {
         tracker: TrackerConfig::default(),
         detection_seed: 0,
         max_frames: None,
+        frame_stride: 1,
         decide: None,
         only_target: false,
     };

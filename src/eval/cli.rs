@@ -42,6 +42,9 @@ pub struct Args {
     /// Evaluate at most this many steps per sequence.
     #[arg(long)]
     pub max_frames: Option<usize>,
+    /// Feed every n-th time step only (the same approach at a lower frame rate).
+    #[arg(long, default_value_t = 1)]
+    pub frame_stride: usize,
     /// Seed of the stand-in detections.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -77,6 +80,7 @@ impl Args {
             tracker: TrackerConfig::default(),
             detection_seed: self.seed,
             max_frames: self.max_frames,
+            frame_stride: self.frame_stride,
             decide,
             only_target: self.only_target,
         })

@@ -49,6 +49,8 @@ pub struct EvalConfig {
     pub detection_seed: u64,
     /// Evaluate at most this many steps per sequence.
     pub max_frames: Option<usize>,
+    /// Feed every n-th time step only (1 = all): the same approach at a lower frame rate.
+    pub frame_stride: usize,
     /// Decide grasp or observe at every step (issue 4's calibration).
     pub decide: Option<DecideConfig>,
     /// Track only each sequence's target (all objects in a sequence without one): the Table I
@@ -313,7 +315,10 @@ pub fn evaluate_sequence(
     let mut traces: BTreeMap<(String, usize), ObjectTrace> = BTreeMap::new();
     let mut decisions = Vec::new();
     let mut decide_rng = rand_chacha::ChaCha8Rng::seed_from_u64(cfg.decide.as_ref().map_or(0, |d| d.seed));
-    let plan = steps(seq, &cameras);
+    let plan: Vec<(u32, i64)> = steps(seq, &cameras)
+        .into_iter()
+        .step_by(cfg.frame_stride.max(1))
+        .collect();
     let plan = &plan[..cfg.max_frames.map_or(plan.len(), |m| m.min(plan.len()))];
     for &(frame_id, stamp_ns) in plan {
         let frames = frames_of_step(seq, &cameras, frame_id, &models, cfg.detection_seed)?;
@@ -552,6 +557,10 @@ pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>
     settings.insert("grid_step_deg".into(), cfg.grid_step_deg.into());
     settings.insert("detection_seed".into(), cfg.detection_seed.into());
     settings.insert("only_target".into(), cfg.only_target.into());
+    settings.insert("frame_stride".into(), cfg.frame_stride.into());
+    if let Some(m) = cfg.max_frames {
+        settings.insert("max_frames".into(), m.into());
+    }
     settings.insert("renderer".into(), renderer.adapter_name().into());
     let tc = tracker_config(&cfg.tracker, cfg.mode);
     settings.insert(
