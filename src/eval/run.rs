@@ -263,7 +263,7 @@ fn frames_of_step(
         frames.push(CameraFrame {
             camera: cam.clone(),
             stamp_ns: meta.stamp_ns,
-            intrinsics: meta.intrinsics.clone(),
+            intrinsics: meta.intrinsics,
             depth,
             color,
             detections,
@@ -465,7 +465,6 @@ fn decide_once(
         threshold: dc.threshold,
         grasp: None,
         support_plane: plane_estimated,
-        ..DecisionQuery::default()
     };
     let decision = match grasp::decide(object, &dc.gripper, &est.reference_from_object, &samples, &query) {
         Ok(d) => d,
