@@ -106,7 +106,9 @@ pub fn sequence_svg(title: &str, series: &[Series]) -> String {
             .filter(|v| v.is_finite())
             .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(v), b.max(v)));
         let (lo, hi) = if lo.is_finite() {
-            nice_range(lo.min(if k == 3 { lo } else { 0.0 }), hi)
+            let (l, h) = nice_range(lo.min(if k == 3 { lo } else { 0.0 }), hi);
+            // Errors and deviations are never negative: start those axes at 0.
+            (if k == 3 { l } else { l.max(0.0) }, h)
         } else {
             (0.0, 1.0)
         };
