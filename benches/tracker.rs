@@ -49,7 +49,14 @@ fn look_at(eye: [f64; 3], target: [f64; 3]) -> Pose {
     )
 }
 
-fn frame(name: &str, k: &Intrinsics, world_from_camera: &Pose, mesh: &Mesh, world_from_object: &Pose, table: &Mesh) -> CameraFrame {
+fn frame(
+    name: &str,
+    k: &Intrinsics,
+    world_from_camera: &Pose,
+    mesh: &Mesh,
+    world_from_object: &Pose,
+    table: &Mesh,
+) -> CameraFrame {
     let cfw = world_from_camera.inverse();
     let img = raster::render(k, &[(mesh, cfw * world_from_object), (table, cfw)], 0.05, [40, 40, 40]);
     let (mut x0, mut y0, mut x1, mut y1) = (u32::MAX, u32::MAX, 0, 0);
@@ -90,7 +97,10 @@ fn codebook(mesh: &Mesh) -> Arc<Codebook> {
     let t0 = Instant::now();
     let cb = match renderer.as_ref().and_then(|r| RendererViews::new(r, mesh).ok()) {
         Some(src) => {
-            eprintln!("codebook views: renderer {}", renderer.as_ref().map(|r| r.adapter_name()).unwrap_or_default());
+            eprintln!(
+                "codebook views: renderer {}",
+                renderer.as_ref().map(|r| r.adapter_name()).unwrap_or_default()
+            );
             Codebook::load_or_build_with(&src as &dyn ViewSource, mesh, grid, &cfg, Some(&cache))
         }
         None => {
@@ -102,13 +112,43 @@ fn codebook(mesh: &Mesh) -> Arc<Codebook> {
     if cb.from_cache {
         eprintln!("codebook loaded from cache in {:.2} s", t0.elapsed().as_secs_f64());
     } else {
-        eprintln!("codebook BUILT in {:.2} s ({} bins, {} triangles)", cb.build_seconds, cb.n_bins(), mesh.triangles.len());
+        eprintln!(
+            "codebook BUILT in {:.2} s ({} bins, {} triangles)",
+            cb.build_seconds,
+            cb.n_bins(),
+            mesh.triangles.len()
+        );
     }
     Arc::new(cb)
 }
 
+fn coarse_build_times(mesh: &Mesh) {
+    let grid = RotationGrid::new(10).expect("10 divides 180");
+    for (name, cfg) in [
+        ("default features", CodebookConfig::default()),
+        ("coarse features", CodebookConfig::coarse()),
+    ] {
+        let t0 = Instant::now();
+        let renderer = pregrasp::render::Renderer::new().ok();
+        let cb = match renderer.as_ref().and_then(|r| RendererViews::new(r, mesh).ok()) {
+            Some(src) => Codebook::build(&src, mesh, grid, &cfg),
+            None => Codebook::build(&CpuViews(mesh), mesh, grid, &cfg),
+        }
+        .expect("coarse codebook");
+        eprintln!(
+            "codebook 10-degree grid, {name}: {} bins built in {:.2} s (wall incl. renderer start {:.2} s)",
+            cb.n_bins(),
+            cb.build_seconds,
+            t0.elapsed().as_secs_f64()
+        );
+    }
+}
+
 fn setup() -> (Tracker, Vec<CameraFrame>, RobotOdometry, Arc<Codebook>) {
     let mesh = mesh();
+    if std::env::var("PREGRASP_BENCH_SKIP_COARSE").is_err() {
+        coarse_build_times(&mesh);
+    }
     let cb = codebook(&mesh);
     let mut table = pregrasp::mesh::builtin_box([4.0, 4.0, 0.02], [[120, 100, 80], [120, 100, 80]]);
     for v in &mut table.vertices_m {
@@ -127,8 +167,18 @@ fn setup() -> (Tracker, Vec<CameraFrame>, RobotOdometry, Arc<Codebook>) {
     let ext2 = look_at([0.9, 2.5, 1.5], [0.0, 0.0, 0.1]);
     let mut cams = BTreeMap::new();
     cams.insert("robot".to_string(), CameraMount::Robot { base_from_camera });
-    cams.insert("ext1".to_string(), CameraMount::Stationary { world_from_camera: ext1 });
-    cams.insert("ext2".to_string(), CameraMount::Stationary { world_from_camera: ext2 });
+    cams.insert(
+        "ext1".to_string(),
+        CameraMount::Stationary {
+            world_from_camera: ext1,
+        },
+    );
+    cams.insert(
+        "ext2".to_string(),
+        CameraMount::Stationary {
+            world_from_camera: ext2,
+        },
+    );
     let mut tracker = Tracker::new(TrackerConfig::default(), cams, "robot".into());
     tracker.add_object_model("obj", mesh.clone(), cb.clone());
     let frames = vec![
@@ -145,7 +195,13 @@ fn setup() -> (Tracker, Vec<CameraFrame>, RobotOdometry, Arc<Codebook>) {
     tracker.step(&frames, Some(&odo)).expect("first step");
     let n: usize = tracker.particles(tracker.tracks()[0].id).map(|p| p.len()).unwrap_or(0);
     eprintln!("tracks {}, particles {n}", tracker.tracks().len());
-    let quiet: Vec<CameraFrame> = frames.into_iter().map(|f| CameraFrame { detections: vec![], ..f }).collect();
+    let quiet: Vec<CameraFrame> = frames
+        .into_iter()
+        .map(|f| CameraFrame {
+            detections: vec![],
+            ..f
+        })
+        .collect();
     let truth = robot.inverse() * world_from_object;
     for _ in 0..3 {
         tracker.step(&quiet, Some(&odo)).expect("step");
@@ -202,7 +258,9 @@ fn bench(c: &mut Criterion) {
     });
     // the matching's GEMM alone: 330 unit codes against the whole codebook, chunked over threads
     let k = cb.code_dim();
-    let mut codes: Vec<f32> = (0..330 * k).map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5).collect();
+    let mut codes: Vec<f32> = (0..330 * k)
+        .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
+        .collect();
     pregrasp::tracker::encoder::normalise_rows(&mut codes, k);
     let mut out = Vec::new();
     g.bench_function("gemm_330x128_by_128x191808_chunked", |b| {

@@ -1,9 +1,11 @@
 //! Codebook cache: a second load comes from the cache; a corrupt, truncated or stale file is
 //! detected and rebuilt, never trusted; a different key gets its own file.
 
+#![allow(clippy::unwrap_used)] // test helpers: a failure is a test failure
+
 use pregrasp::geometry::RotationGrid;
-use pregrasp::tracker::codebook::{CodebookConfig, CpuViews};
 use pregrasp::tracker::Codebook;
+use pregrasp::tracker::codebook::{CodebookConfig, CpuViews};
 
 fn tiny_config() -> CodebookConfig {
     CodebookConfig {
@@ -44,12 +46,20 @@ fn cache_hits_and_invalidation() {
     let c = Codebook::load_or_build_with(&src, &mesh, grid, &cfg, Some(dir.path())).unwrap();
     assert!(!c.from_cache, "a corrupt file must not be trusted");
     assert_eq!(c.codes, a.codes, "the rebuild is deterministic");
-    assert!(Codebook::load_or_build_with(&src, &mesh, grid, &cfg, Some(dir.path())).unwrap().from_cache);
+    assert!(
+        Codebook::load_or_build_with(&src, &mesh, grid, &cfg, Some(dir.path()))
+            .unwrap()
+            .from_cache
+    );
 
     // truncated file
     let bytes = std::fs::read(&path).unwrap();
     std::fs::write(&path, &bytes[..bytes.len() / 3]).unwrap();
-    assert!(!Codebook::load_or_build_with(&src, &mesh, grid, &cfg, Some(dir.path())).unwrap().from_cache);
+    assert!(
+        !Codebook::load_or_build_with(&src, &mesh, grid, &cfg, Some(dir.path()))
+            .unwrap()
+            .from_cache
+    );
 
     // a valid file of another key renamed onto this key's name: stale header -> rebuilt
     let other_cfg = CodebookConfig {
@@ -59,7 +69,11 @@ fn cache_hits_and_invalidation() {
     let other_dir = tempfile::tempdir().unwrap();
     Codebook::load_or_build_with(&src, &mesh, grid, &other_cfg, Some(other_dir.path())).unwrap();
     std::fs::copy(only_file(other_dir.path()), &path).unwrap();
-    assert!(!Codebook::load_or_build_with(&src, &mesh, grid, &cfg, Some(dir.path())).unwrap().from_cache);
+    assert!(
+        !Codebook::load_or_build_with(&src, &mesh, grid, &cfg, Some(dir.path()))
+            .unwrap()
+            .from_cache
+    );
 
     // another mesh gets its own file
     let mug = pregrasp::mesh::builtin("mug").unwrap();
@@ -103,7 +117,10 @@ fn codes_are_unit_and_in_plane_bins_are_image_rotations() {
     // the box's flip about its x axis looks the same
     let flip = r * nalgebra::UnitQuaternion::from_axis_angle(&nalgebra::Vector3::x_axis(), std::f64::consts::PI);
     let err_flip = grid.rotation(grid.unflat(best)).angle_to(&flip).to_degrees();
-    assert!(err.min(err_flip) < 16.0, "best bin {err} deg from the truth (flip {err_flip})");
+    assert!(
+        err.min(err_flip) < 16.0,
+        "best bin {err} deg from the truth (flip {err_flip})"
+    );
     // rotating the image by one bin the wrong way would land two bins off
     let wrong = grid.flat(pregrasp::geometry::BinIndex { inplane: 3, ..bin });
     assert!(sim[grid.flat(bin)] > sim[wrong]);

@@ -1,5 +1,7 @@
 //! Tracker scenarios on synthetic rendered scenes (coarse 10-degree grid, 160 x 120 images).
 
+#![allow(clippy::unwrap_used)] // test helpers: a failure is a test failure
+
 mod tracker_support;
 
 use nalgebra::{UnitQuaternion, Vector3};
@@ -10,7 +12,10 @@ use tracker_support::*;
 
 fn box_symmetries() -> Vec<UnitQuaternion<f64>> {
     // the built-in box: +x half coloured differently, so only the flip about x remains
-    vec![UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)]
+    vec![UnitQuaternion::from_axis_angle(
+        &Vector3::x_axis(),
+        std::f64::consts::PI,
+    )]
 }
 
 #[test]
@@ -32,7 +37,7 @@ fn single_camera_converges_on_a_rendered_box() {
         let e = tracker.estimate(id).unwrap();
         let t = &tracker.tracks()[0];
         eprintln!(
-            "step {step}: t_err {:.3} r_err {:.1} sim {:.3} status {:?} std {:.3} ent {:.2} loglik {:.2} total {:.3}s",
+            "step {step}: t_err {:.3} r_err {:.1} sim {:?} status {:?} std {:.3} ent {:.2} loglik {:.2} total {:.3}s",
             translation_error(&e.reference_from_object, &truth),
             rotation_error_deg(&e.reference_from_object.rotation, &truth.rotation, &box_symmetries()),
             t.best_similarity,
@@ -59,14 +64,19 @@ fn mug_errors(est: &UnitQuaternion<f64>, truth: &UnitQuaternion<f64>) -> (f64, f
     (yaw, axis_err)
 }
 
-fn run_mug(views: &[(&str, pregrasp::geometry::Pose)], steps: u64) -> (f64, f64, f64, f64) {
+fn run_mug(views: &[(&str, pregrasp::geometry::Pose)], steps: u64) -> (f64, f64, f64, f64, f64) {
     let mesh = pregrasp::mesh::builtin("mug").unwrap();
     let cb = coarse_codebook(&mesh);
     let truth_world = on_table(&mesh, 0.0, 0.0, std::f64::consts::PI);
     let scene = Scene::new(vec![("mug".into(), mesh.clone(), truth_world)]);
     let mut cams = BTreeMap::new();
     for (name, pose) in views {
-        cams.insert(name.to_string(), CameraMount::Stationary { world_from_camera: *pose });
+        cams.insert(
+            name.to_string(),
+            CameraMount::Stationary {
+                world_from_camera: *pose,
+            },
+        );
     }
     let reference = views[0].0.to_string();
     let mut tracker = Tracker::new(TrackerConfig::default(), cams, reference);
@@ -90,7 +100,7 @@ fn run_mug(views: &[(&str, pregrasp::geometry::Pose)], steps: u64) -> (f64, f64,
         translation_error(&e.reference_from_object, &truth),
         e.rotation_modes.iter().map(|m| m.mass).collect::<Vec<_>>()
     );
-    (yaw, axis, ll, e.rotation_entropy)
+    (yaw, axis, ll, e.rotation_entropy, e.rotation_modes[0].mass)
 }
 
 /// The paper's Fig. 4: a mug whose handle is hidden from one camera; that camera alone cannot
@@ -101,14 +111,20 @@ fn second_view_resolves_the_hidden_handle() {
     // handle points to world -x; camera A looks from +x (handle hidden behind the body)
     let cam_a = look_at([0.35, 0.0, 0.4], [0.0, 0.0, 0.045]);
     let cam_b = look_at([0.0, -0.35, 0.4], [0.0, 0.0, 0.045]);
-    let (yaw_a, _, ll_a, ent_a) = run_mug(&[("a", cam_a)], 5);
-    let (yaw_ab, axis_ab, ll_ab, ent_ab) = run_mug(&[("a", cam_a), ("b", cam_b)], 5);
-    assert!(yaw_ab < 25.0 && axis_ab < 20.0, "fused estimate: yaw {yaw_ab} axis {axis_ab}");
-    assert!(ll_ab > ll_a + 1.0, "fused log-likelihood of the truth {ll_ab} vs single {ll_a}");
-    assert!(ent_a > ent_ab, "single view entropy {ent_a} vs fused {ent_ab}");
-    let _ = yaw_a;
+    let (_, _, ll_a, ent_a, top_a) = run_mug(&[("a", cam_a)], 5);
+    let (yaw_ab, axis_ab, ll_ab, ent_ab, top_ab) = run_mug(&[("a", cam_a), ("b", cam_b)], 5);
+    assert!(
+        yaw_ab < 25.0 && axis_ab < 20.0,
+        "fused estimate: yaw {yaw_ab} axis {axis_ab}"
+    );
+    // the single view spreads its mass over the hidden handle's positions (whichever it
+    // happens to favour); the fused one concentrates it
+    assert!(ent_a > ent_ab + 0.5, "single view entropy {ent_a} vs fused {ent_ab}");
+    assert!(top_ab > top_a + 0.1, "top mode mass: fused {top_ab} vs single {top_a}");
+    // and the truth keeps a high likelihood in the fused distribution
+    let uniform = -(pregrasp::geometry::RotationGrid::new(10).unwrap().len() as f64).ln();
+    assert!(ll_ab > uniform + 3.0, "fused truth loglik {ll_ab} (single {ll_a})");
 }
-
 
 fn planar(x: f64, y: f64, yaw: f64) -> Pose {
     Pose::from_parts(
@@ -147,17 +163,30 @@ fn odometry_moves_the_distribution_with_the_robot_camera() {
         let odom_from_base = planar(0.05 * step as f64, 0.01 * step as f64, 0.04 * step as f64);
         let world_from_camera = odom_from_base * base_from_camera;
         let frames = if step < 4 {
-            vec![frame("robot", &world_from_camera, &scene, step == 0, true, 0.01, step as u64)]
+            vec![frame(
+                "robot",
+                &world_from_camera,
+                &scene,
+                step == 0,
+                true,
+                0.01,
+                step as u64,
+            )]
         } else {
             vec![]
         };
-        tracker.step(&frames, Some(&odometry(odom_from_base, base_from_camera, step))).unwrap();
+        tracker
+            .step(&frames, Some(&odometry(odom_from_base, base_from_camera, step)))
+            .unwrap();
         let truth = world_from_camera.inverse() * truth_world;
         let id = tracker.tracks()[0].id;
         let e = tracker.estimate(id).unwrap();
         let te = translation_error(&e.reference_from_object, &truth);
         let re = rotation_error_deg(&e.reference_from_object.rotation, &truth.rotation, &sym);
-        eprintln!("step {step}: t_err {te:.3} r_err {re:.1} std {:.3}", e.translation_std_m);
+        eprintln!(
+            "step {step}: t_err {te:.3} r_err {re:.1} std {:.3}",
+            e.translation_std_m
+        );
         if step >= 2 {
             worst_t = worst_t.max(te);
             worst_r = worst_r.max(re);
@@ -189,7 +218,10 @@ fn a_camera_dropping_out_keeps_the_track() {
     let mut std_before = 0.0;
     for step in 0..12u64 {
         let frames = match step {
-            0..=3 => vec![frame("ext1", &c1, &scene, step == 0, true, 0.01, step), frame("ext2", &c2, &scene, step == 0, true, 0.01, 100 + step)],
+            0..=3 => vec![
+                frame("ext1", &c1, &scene, step == 0, true, 0.01, step),
+                frame("ext2", &c2, &scene, step == 0, true, 0.01, 100 + step),
+            ],
             4..=7 => vec![frame("ext2", &c2, &scene, false, true, 0.01, 100 + step)],
             _ => vec![],
         };
@@ -198,7 +230,12 @@ fn a_camera_dropping_out_keeps_the_track() {
         let e = tracker.estimate(t.id).unwrap();
         let te = translation_error(&e.reference_from_object, &truth);
         let re = rotation_error_deg(&e.reference_from_object.rotation, &truth.rotation, &sym);
-        eprintln!("step {step}: t_err {te:.3} r_err {re:.1} std {:.4} seen_by {:?} comps {:?}", e.translation_std_m, t.seen_by, e.components.iter().map(|c| c.weight).collect::<Vec<_>>());
+        eprintln!(
+            "step {step}: t_err {te:.3} r_err {re:.1} std {:.4} seen_by {:?} comps {:?}",
+            e.translation_std_m,
+            t.seen_by,
+            e.components.iter().map(|c| c.weight).collect::<Vec<_>>()
+        );
         assert_eq!(tracker.tracks().len(), 1);
         assert_ne!(t.status, TrackStatus::Lost, "step {step}");
         if (2..=7).contains(&step) {
@@ -232,14 +269,21 @@ fn a_lost_track_is_reinitialised_from_the_next_detection() {
     let moved = on_table(&mesh, 0.35, -0.15, 0.3);
     let two = Scene::new(vec![("box".into(), mesh.clone(), a), ("box".into(), mesh.clone(), b)]);
     for step in 0..3u64 {
-        tracker.step(&[frame("ext1", &cam, &two, step == 0, true, 0.01, step)], None).unwrap();
+        tracker
+            .step(&[frame("ext1", &cam, &two, step == 0, true, 0.01, step)], None)
+            .unwrap();
     }
     assert_eq!(tracker.tracks().len(), 2, "two instances, two tracks");
     let find = |tracker: &Tracker, truth: &Pose| -> (u64, f64) {
         tracker
             .tracks()
             .iter()
-            .map(|t| (t.id, translation_error(&tracker.estimate(t.id).unwrap().reference_from_object, truth)))
+            .map(|t| {
+                (
+                    t.id,
+                    translation_error(&tracker.estimate(t.id).unwrap().reference_from_object, truth),
+                )
+            })
             .min_by(|x, y| x.1.total_cmp(&y.1))
             .unwrap()
     };
@@ -247,33 +291,117 @@ fn a_lost_track_is_reinitialised_from_the_next_detection() {
     let (id_b, err_b) = find(&tracker, &(cam.inverse() * b));
     assert!(id_a != id_b && err_a < 0.03 && err_b < 0.03, "{err_a} {err_b}");
     // instance a is carried away (out of sight of its particles); no detections
-    let after = Scene::new(vec![("box".into(), mesh.clone(), moved), ("box".into(), mesh.clone(), b)]);
+    let after = Scene::new(vec![
+        ("box".into(), mesh.clone(), moved),
+        ("box".into(), mesh.clone(), b),
+    ]);
     let mut lost_at = None;
     for step in 3..12u64 {
-        let rep = tracker.step(&[frame("ext1", &cam, &after, false, true, 0.01, step)], None).unwrap();
+        let rep = tracker
+            .step(&[frame("ext1", &cam, &after, false, true, 0.01, step)], None)
+            .unwrap();
         let t = tracker.tracks().iter().find(|t| t.id == id_a).unwrap();
-        eprintln!("step {step}: status {:?} sim {:.3}", t.status, t.best_similarity);
+        eprintln!("step {step}: status {:?} sim {:?}", t.status, t.best_similarity);
         if rep.tracks_lost.contains(&id_a) {
             lost_at = Some(step);
             break;
         }
     }
     assert!(lost_at.is_some(), "the moved instance is declared lost");
-    assert_eq!(tracker.tracks().iter().find(|t| t.id == id_b).unwrap().status, TrackStatus::Tracking);
+    assert_eq!(
+        tracker.tracks().iter().find(|t| t.id == id_b).unwrap().status,
+        TrackStatus::Tracking
+    );
     // the next detections restart it
-    let rep = tracker.step(&[frame("ext1", &cam, &after, true, true, 0.01, 50)], None).unwrap();
+    let rep = tracker
+        .step(&[frame("ext1", &cam, &after, true, true, 0.01, 50)], None)
+        .unwrap();
     assert_eq!(rep.tracks_reinitialised, vec![id_a]);
     assert!(rep.tracks_created.is_empty());
     let f = frame("ext1", &cam, &after, true, true, 0.01, 50);
     eprintln!("detections {:?}", f.detections);
     for step in 51..54u64 {
-        tracker.step(&[frame("ext1", &cam, &after, false, true, 0.01, step)], None).unwrap();
+        tracker
+            .step(&[frame("ext1", &cam, &after, false, true, 0.01, step)], None)
+            .unwrap();
         let e = tracker.estimate(id_a).unwrap();
-        eprintln!("step {step}: err {:.3} sim {:.3} truth {:?} est {:?}", translation_error(&e.reference_from_object, &(cam.inverse() * moved)), tracker.tracks().iter().find(|t| t.id == id_a).unwrap().best_similarity, (cam.inverse() * moved).translation.vector.as_slice(), e.reference_from_object.translation.vector.as_slice());
+        eprintln!(
+            "step {step}: err {:.3} sim {:?} truth {:?} est {:?}",
+            translation_error(&e.reference_from_object, &(cam.inverse() * moved)),
+            tracker.tracks().iter().find(|t| t.id == id_a).unwrap().best_similarity,
+            (cam.inverse() * moved).translation.vector.as_slice(),
+            e.reference_from_object.translation.vector.as_slice()
+        );
     }
     let t = tracker.tracks().iter().find(|t| t.id == id_a).unwrap();
     assert_eq!(t.status, TrackStatus::Tracking);
     let e = tracker.estimate(id_a).unwrap();
     let err = translation_error(&e.reference_from_object, &(cam.inverse() * moved));
     assert!(err < 0.03, "re-initialised track error {err}");
+}
+
+/// A view that disagrees with the others (its extrinsics are off by a quarter turn about its
+/// optical axis, so it sees the object but reports its rotation turned) must not wipe out the
+/// distribution: the two agreeing views win, and the truth keeps a sensible likelihood.
+#[test]
+fn a_conflicting_view_does_not_wipe_out_the_distribution() {
+    let mesh = pregrasp::mesh::builtin("box").unwrap();
+    let cb = coarse_codebook(&mesh);
+    let truth_world = on_table(&mesh, 0.0, 0.0, 0.5);
+    let scene = Scene::new(vec![("box".into(), mesh.clone(), truth_world)]);
+    let ca = look_at([-0.8, -0.3, 0.6], [0.0, 0.0, 0.1]);
+    let cbm = look_at([0.2, -0.85, 0.6], [0.0, 0.0, 0.1]);
+    let cc = look_at([0.2, 0.85, 0.6], [0.0, 0.0, 0.1]);
+    // what the tracker believes about camera c: turned by 90 degrees about its optical axis
+    let cc_wrong = cc
+        * Pose::from_parts(
+            nalgebra::Translation3::identity(),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), std::f64::consts::FRAC_PI_2),
+        );
+    let run = |floor: f32| -> (f64, f64) {
+        let mut cams = BTreeMap::new();
+        cams.insert("a".to_string(), CameraMount::Stationary { world_from_camera: ca });
+        cams.insert("b".to_string(), CameraMount::Stationary { world_from_camera: cbm });
+        cams.insert(
+            "c".to_string(),
+            CameraMount::Stationary {
+                world_from_camera: cc_wrong,
+            },
+        );
+        let mut cfg = TrackerConfig::default();
+        cfg.observation.loglik_floor = floor;
+        let mut tracker = Tracker::new(cfg, cams, "a".into());
+        tracker.add_object_model("box", mesh.clone(), cb.clone());
+        for step in 0..4u64 {
+            // camera c's image is rendered from where it really is, named with the wrong pose
+            let mut fc = frame("c", &cc, &scene, false, true, 0.01, 200 + step);
+            fc.camera = "c".into();
+            let frames = vec![
+                frame("a", &ca, &scene, step == 0, true, 0.01, step),
+                frame("b", &cbm, &scene, step == 0, true, 0.01, 100 + step),
+                fc,
+            ];
+            tracker.step(&frames, None).unwrap();
+        }
+        let truth = ca.inverse() * truth_world;
+        let id = tracker.tracks()[0].id;
+        let e = tracker.estimate(id).unwrap();
+        let re = rotation_error_deg(&e.reference_from_object.rotation, &truth.rotation, &box_symmetries());
+        let ll = tracker.orientation_loglik(id, &truth.rotation).unwrap();
+        eprintln!(
+            "floor {floor}: rotation error {re:.1} deg, truth loglik {ll:.2}, seen by {:?}",
+            tracker.tracks()[0].seen_by
+        );
+        (re, ll)
+    };
+    let (re, ll) = run(TrackerConfig::default().observation.loglik_floor);
+    let uniform = -(pregrasp::geometry::RotationGrid::new(10).unwrap().len() as f64).ln();
+    assert!(re < 25.0, "the agreeing views win: {re}");
+    assert!(
+        ll > uniform,
+        "the truth keeps more than uniform mass: {ll} vs {uniform}"
+    );
+    // without the floor the conflicting view costs the truth far more
+    let (_, ll_nofloor) = run(-1e6);
+    assert!(ll > ll_nofloor + 1.0, "floored {ll} vs unfloored {ll_nofloor}");
 }

@@ -51,7 +51,11 @@ impl FeatureLayout {
         (self.feature_px / 2).max(1)
     }
     pub fn color_len(&self) -> usize {
-        if self.use_color { self.color_px() * self.color_px() * 3 } else { 0 }
+        if self.use_color {
+            self.color_px() * self.color_px() * 3
+        } else {
+            0
+        }
     }
     pub fn dim(&self) -> usize {
         self.depth_len() + self.color_len()
@@ -173,10 +177,10 @@ pub fn sample_crop(
                         n += 1;
                     }
                 }
-                for ch in 0..3 {
+                for (ch, sc) in sum.iter().enumerate() {
                     let k = base + (i * fc + j) * 3 + ch;
                     if n > 0 {
-                        out[k] = sum[ch] / n as f32 * layout.color_weight;
+                        out[k] = sc / n as f32 * layout.color_weight;
                         mask[k] = false;
                     } else {
                         out[k] = 0.0;
@@ -254,6 +258,31 @@ pub fn inpaint_depth(layout: &FeatureLayout, x: &mut [f32], mask: &mut [bool], h
             }
         }
     }
+}
+
+/// Lower-quartile normalised depth of the central half of a crop's depth cells that lie strictly
+/// inside the normalisation box (the object's visible surface near its centre); `None` when
+/// no such cell is valid. Compared between an observed crop and its best template, it gives a
+/// depth error in box units: `(observed - template) * box_m` metres.
+pub fn central_median_depth(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Option<f32> {
+    let f = layout.feature_px;
+    let mut v: Vec<f32> = Vec::with_capacity(f * f / 4);
+    for i in f / 4..f - f / 4 {
+        for j in f / 4..f - f / 4 {
+            let k = i * f + j;
+            if !mask[k] && x[k] > 0.0 && x[k] < 1.0 {
+                v.push(x[k]);
+            }
+        }
+    }
+    if v.len() < 3 {
+        return None;
+    }
+    // the lower quartile: the object's front surface; a table or wall behind the object only
+    // adds larger values
+    let q = v.len() / 4;
+    v.select_nth_unstable_by(q, |a, b| a.total_cmp(b));
+    Some(v[q])
 }
 
 /// An encoder from crop features to codes. Implementations must be usable from many threads.
@@ -336,6 +365,7 @@ impl LinearDenoisingEncoder {
     /// Fits the encoder: `clean` and `corrupted` are row-major `n x d` (the same templates,
     /// clean and corrupted), `corrupted_mask` marks missing values of the corrupted crops.
     /// `ridge_lambda_rel` scales the ridge penalty by the mean diagonal of the Gram matrix.
+    #[allow(clippy::too_many_arguments)] // the sizes travel with the flat buffers
     pub fn fit(
         clean: &[f32],
         corrupted: &[f32],
@@ -482,7 +512,9 @@ mod tests {
         // coordinates and with missing values
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
         let (n, d, k) = (3000, 40, 3);
-        let basis: Vec<Vec<f32>> = (0..k).map(|_| (0..d).map(|_| rng.random::<f32>() - 0.5).collect()).collect();
+        let basis: Vec<Vec<f32>> = (0..k)
+            .map(|_| (0..d).map(|_| rng.random::<f32>() - 0.5).collect())
+            .collect();
         let noise = Normal::new(0.0f32, 0.6).unwrap();
         let mut clean = vec![0f32; n * d];
         let mut noisy = vec![0f32; n * d];
@@ -503,16 +535,24 @@ mod tests {
         enc.encode_observations(&noisy, &mask, n, &mut zn);
         normalise_rows(&mut zc, k);
         normalise_rows(&mut zn, k);
-        let cos: f32 =
-            (0..n).map(|i| (0..k).map(|q| zc[i * k + q] * zn[i * k + q]).sum::<f32>()).sum::<f32>() / n as f32;
+        let cos: f32 = (0..n)
+            .map(|i| (0..k).map(|q| zc[i * k + q] * zn[i * k + q]).sum::<f32>())
+            .sum::<f32>()
+            / n as f32;
         // plain PCA projection of the noisy input, for comparison
         let mut zp = vec![0f32; n * k];
-        let imputed: Vec<f32> =
-            noisy.iter().zip(&mask).enumerate().map(|(i, (&v, &m))| if m { enc.mean_clean[i % d] } else { v }).collect();
+        let imputed: Vec<f32> = noisy
+            .iter()
+            .zip(&mask)
+            .enumerate()
+            .map(|(i, (&v, &m))| if m { enc.mean_clean[i % d] } else { v })
+            .collect();
         enc.pca_codes(&imputed, n, &mut zp);
         normalise_rows(&mut zp, k);
-        let cos_pca: f32 =
-            (0..n).map(|i| (0..k).map(|q| zc[i * k + q] * zp[i * k + q]).sum::<f32>()).sum::<f32>() / n as f32;
+        let cos_pca: f32 = (0..n)
+            .map(|i| (0..k).map(|q| zc[i * k + q] * zp[i * k + q]).sum::<f32>())
+            .sum::<f32>()
+            / n as f32;
         assert!(cos > 0.9, "ridge codes agree with clean codes: {cos}");
         assert!(cos > cos_pca + 0.03, "ridge {cos} vs pca {cos_pca}");
     }

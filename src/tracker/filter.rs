@@ -22,11 +22,11 @@
 
 use crate::geometry::{Pose, PoseSamples};
 use crate::mesh::Mesh;
-use crate::tracker::bins::{GridTables, add_pulled, blur, gaussian_kernel};
+use crate::tracker::bins::{GridTables, blur, fast_exp, gaussian_kernel};
 use crate::tracker::codebook::Codebook;
 use crate::tracker::estimate::{EstimateConfig, ParticleSet, summarise_rotation};
 use crate::tracker::motion::{OdometryNoise, brownian, move_with_odometry};
-use crate::tracker::observation::{ObservationConfig, ViewImage, observe_view};
+use crate::tracker::observation::{ObservationConfig, ViewImage, add_loglik, observe_view};
 use crate::tracker::{
     CameraFrame, CameraMount, Detection, Estimate, ParticleView, RobotOdometry, StepReport, Track, TrackStatus,
     TrackerError,
@@ -266,13 +266,20 @@ impl Tracker {
         Some(s.set(&self.models[s.model].tables).sample_poses(n, rng))
     }
 
-    pub fn orientation_loglik(&self, track_id: u64, reference_from_object_rotation: &UnitQuaternion<f64>) -> Option<f64> {
+    pub fn orientation_loglik(
+        &self,
+        track_id: u64,
+        reference_from_object_rotation: &UnitQuaternion<f64>,
+    ) -> Option<f64> {
         let i = self.index_of(track_id)?;
         let s = &self.states[i];
         if s.n() == 0 {
             return None;
         }
-        Some(s.set(&self.models[s.model].tables).orientation_loglik(reference_from_object_rotation))
+        Some(
+            s.set(&self.models[s.model].tables)
+                .orientation_loglik(reference_from_object_rotation),
+        )
     }
 
     pub fn particles(&self, track_id: u64) -> Option<Vec<ParticleView>> {
@@ -295,7 +302,9 @@ impl Tracker {
             return Some(Pose::identity());
         }
         match self.cameras.get(camera)? {
-            CameraMount::Stationary { world_from_camera } => Some(world_from_camera.inverse() * self.world_from_reference),
+            CameraMount::Stationary { world_from_camera } => {
+                Some(world_from_camera.inverse() * self.world_from_reference)
+            }
             CameraMount::Robot { base_from_camera } => {
                 let base_from_reference = match (odometry, self.cameras.get(&self.reference)) {
                     (Some(o), _) => o.base_from_camera,
@@ -309,7 +318,11 @@ impl Tracker {
 
     /// One filter step with the frames of this time (any subset of the cameras) and the robot's
     /// odometry (when the reference camera is on the robot).
-    pub fn step(&mut self, frames: &[CameraFrame], odometry: Option<&RobotOdometry>) -> Result<StepReport, TrackerError> {
+    pub fn step(
+        &mut self,
+        frames: &[CameraFrame],
+        odometry: Option<&RobotOdometry>,
+    ) -> Result<StepReport, TrackerError> {
         let t_start = Instant::now();
         let mut report = StepReport::default();
         for f in frames {
@@ -317,7 +330,10 @@ impl Tracker {
                 return Err(TrackerError::UnknownCamera(f.camera.clone()));
             }
             let (w, h) = (f.intrinsics.width, f.intrinsics.height);
-            if f.depth.width != w || f.depth.height != h || f.color.as_ref().is_some_and(|c| c.width != w || c.height != h) {
+            if f.depth.width != w
+                || f.depth.height != h
+                || f.color.as_ref().is_some_and(|c| c.width != w || c.height != h)
+            {
                 return Err(TrackerError::ImageSize {
                     camera: f.camera.clone(),
                     got_w: f.depth.width,
@@ -327,9 +343,16 @@ impl Tracker {
                 });
             }
         }
-        let frames: Vec<&CameraFrame> =
-            frames.iter().filter(|f| !self.config.only_reference_camera || f.camera == self.reference).collect();
-        let stamp = frames.iter().map(|f| f.stamp_ns).max().or(odometry.map(|o| o.stamp_ns)).unwrap_or(self.stamp_ns);
+        let frames: Vec<&CameraFrame> = frames
+            .iter()
+            .filter(|f| !self.config.only_reference_camera || f.camera == self.reference)
+            .collect();
+        let stamp = frames
+            .iter()
+            .map(|f| f.stamp_ns)
+            .max()
+            .or(odometry.map(|o| o.stamp_ns))
+            .unwrap_or(self.stamp_ns);
         self.stamp_ns = stamp;
         report.stamp_ns = stamp;
 
@@ -353,8 +376,8 @@ impl Tracker {
             if s.n() > 0 {
                 let grid = self.models[s.model].tables.grid;
                 let n = s.n();
+                // the blur preserves each histogram's mass: no renormalisation needed
                 blur(&grid, &mut s.hist, n, &kernel, &mut self.scratch);
-                normalise_columns(&mut s.hist, n);
             }
         }
         report.timings.blur_s += t0.elapsed().as_secs_f64();
@@ -388,10 +411,8 @@ impl Tracker {
     }
 
     fn apply_odometry(&mut self, prev: &RobotOdometry, cur: &RobotOdometry) {
-        let prev_from_cur_exact = prev.base_from_camera.inverse()
-            * prev.odom_from_base.inverse()
-            * cur.odom_from_base
-            * cur.base_from_camera;
+        let prev_from_cur_exact =
+            prev.base_from_camera.inverse() * prev.odom_from_base.inverse() * cur.odom_from_base * cur.base_from_camera;
         for i in 0..self.states.len() {
             if self.states[i].n() == 0 {
                 continue;
@@ -432,7 +453,10 @@ impl Tracker {
             let p = view_from_ref * Point3::from(m);
             match frame.intrinsics.project(&p) {
                 Some([u, v]) => {
-                    u >= bx - margin * bw && u <= bx + bw * (1.0 + margin) && v >= by - margin * bh && v <= by + bh * (1.0 + margin)
+                    u >= bx - margin * bw
+                        && u <= bx + bw * (1.0 + margin)
+                        && v >= by - margin * bh
+                        && v <= by + bh * (1.0 + margin)
                 }
                 None => false,
             }
@@ -474,7 +498,7 @@ impl Tracker {
                             object: det.object.clone(),
                             status: TrackStatus::Initialising,
                             stamp_ns: self.stamp_ns,
-                            best_similarity: f64::NAN,
+                            best_similarity: None,
                             weak_steps: 0,
                             seen_by: Vec::new(),
                         });
@@ -508,7 +532,10 @@ impl Tracker {
         view_from_ref: &Pose,
         ci: usize,
     ) -> Vec<Vector3<f64>> {
-        let robot = matches!(self.cameras.get(&self.camera_names[ci]), Some(CameraMount::Robot { .. }));
+        let robot = matches!(
+            self.cameras.get(&self.camera_names[ci]),
+            Some(CameraMount::Robot { .. })
+        );
         let n = if robot || self.camera_names[ci] == self.reference {
             self.config.particles_from_robot_camera
         } else {
@@ -519,8 +546,14 @@ impl Tracker {
         let (cu, cv) = (bx + bw / 2.0, by + bh / 2.0);
         let k = &frame.intrinsics;
         let mut depths: Vec<f32> = Vec::new();
-        let (x0, x1) = ((bx + bw * 0.25).max(0.0) as u32, ((bx + bw * 0.75) as u32).min(k.width.saturating_sub(1)));
-        let (y0, y1) = ((by + bh * 0.25).max(0.0) as u32, ((by + bh * 0.75) as u32).min(k.height.saturating_sub(1)));
+        let (x0, x1) = (
+            (bx + bw * 0.25).max(0.0) as u32,
+            ((bx + bw * 0.75) as u32).min(k.width.saturating_sub(1)),
+        );
+        let (y0, y1) = (
+            (by + bh * 0.25).max(0.0) as u32,
+            ((by + bh * 0.75) as u32).min(k.height.saturating_sub(1)),
+        );
         for y in y0..=y1 {
             for x in x0..=x1 {
                 let d = frame.depth.get(x, y);
@@ -564,7 +597,11 @@ impl Tracker {
             row[old_n..].fill(tables.volume(b) as f32);
         });
         s.hist = hist;
-        let w_new = if old_n > 0 { 1.0 / new_n as f64 } else { 1.0 / parts.len() as f64 };
+        let w_new = if old_n > 0 {
+            1.0 / new_n as f64
+        } else {
+            1.0 / parts.len() as f64
+        };
         for w in &mut s.weights {
             *w *= old_n as f64 / new_n as f64;
         }
@@ -589,10 +626,15 @@ impl Tracker {
         let mut in_some_image = false;
         let mean_ref = self.states[ti].set(&tables).mean_position();
         let reference_from_hist = self.states[ti].reference_from_hist;
-        let mean_hist = reference_from_hist.inverse_transform_point(&Point3::from(mean_ref)).coords;
+        let mean_hist = reference_from_hist
+            .inverse_transform_point(&Point3::from(mean_ref))
+            .coords;
         for (frame, view_from_ref, _ci) in views {
-            let positions: Vec<Vector3<f64>> =
-                self.states[ti].positions.iter().map(|p| (view_from_ref * Point3::from(*p)).coords).collect();
+            let positions: Vec<Vector3<f64>> = self.states[ti]
+                .positions
+                .iter()
+                .map(|p| (view_from_ref * Point3::from(*p)).coords)
+                .collect();
             let mean_view = (view_from_ref * Point3::from(mean_ref)).coords;
             if let Some(uv) = frame.intrinsics.project(&Point3::from(mean_view))
                 && frame.intrinsics.contains(uv)
@@ -623,22 +665,22 @@ impl Tracker {
                 * reference_from_hist.rotation
                 * crate::geometry::ray_rotation(&mean_hist);
             if q.angle() < 1e-9 {
-                self.fused.par_iter_mut().zip(ev.loglik.par_iter()).for_each(|(f, l)| *f += l);
+                add_loglik(&mut self.fused, &ev, None, n);
             } else {
                 let map = tables.pull_map(&q);
-                add_pulled(&mut self.fused, &ev.loglik, &map, n);
+                add_loglik(&mut self.fused, &ev, Some(&map), n);
             }
             for (d, l) in depth_log.iter_mut().zip(&ev.depth_log) {
                 *d += l;
             }
-            self.sim = ev.loglik;
+            self.sim = ev.sim;
             report.timings.fusion_s += t0.elapsed().as_secs_f64();
         }
         let t0 = Instant::now();
         let track = &mut self.tracks[ti];
         track.stamp_ns = self.stamp_ns;
         track.seen_by = seen_by.clone();
-        track.best_similarity = if best.is_finite() { best as f64 } else { f64::NAN };
+        track.best_similarity = best.is_finite().then_some(best as f64);
         let had_evidence = !seen_by.is_empty();
         if had_evidence {
             let s = &mut self.states[ti];
@@ -652,16 +694,17 @@ impl Tracker {
                 .zip(fused.par_chunks(n * 1024))
                 .enumerate()
                 .map(|(c, (hc, fc))| {
-                    let mut acc = vec![0f64; n];
+                    // f32 sums over 1,024 bins, f64 across chunks
+                    let mut acc = vec![0f32; n];
                     for (k, (hrow, frow)) in hc.chunks_mut(n).zip(fc.chunks(n)).enumerate() {
                         let floor = floor_rel * tables.volume(c * 1024 + k) as f32;
-                        for p in 0..n {
-                            let v = hrow[p].max(floor) * (frow[p] - fmax[p]).exp();
-                            hrow[p] = v;
-                            acc[p] += v as f64;
+                        for (((h, f), m), a) in hrow.iter_mut().zip(frow).zip(&fmax).zip(acc.iter_mut()) {
+                            let v = h.max(floor) * fast_exp(f - m);
+                            *h = v;
+                            *a += v;
                         }
                     }
-                    acc
+                    acc.into_iter().map(f64::from).collect::<Vec<f64>>()
                 })
                 .reduce(
                     || vec![0f64; n],
@@ -674,7 +717,9 @@ impl Tracker {
                 );
             // new log weights: old + log marginal (Eq. 7) + depth term
             let mut logw: Vec<f64> = (0..n)
-                .map(|p| s.weights[p].max(1e-300).ln() + sums[p].max(1e-300).ln() + fmax[p] as f64 + depth_log[p] as f64)
+                .map(|p| {
+                    s.weights[p].max(1e-300).ln() + sums[p].max(1e-300).ln() + fmax[p] as f64 + depth_log[p] as f64
+                })
                 .collect();
             let m = logw.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
             for v in &mut logw {
@@ -682,7 +727,10 @@ impl Tracker {
             }
             s.weights = logw;
             normalise(&mut s.weights);
-            let inv: Vec<f32> = sums.iter().map(|v| if *v > 0.0 { (1.0 / v) as f32 } else { 0.0 }).collect();
+            let inv: Vec<f32> = sums
+                .iter()
+                .map(|v| if *v > 0.0 { (1.0 / v) as f32 } else { 0.0 })
+                .collect();
             s.hist.par_chunks_mut(n).for_each(|row| {
                 for (h, i) in row.iter_mut().zip(&inv) {
                     *h *= i;
@@ -715,11 +763,19 @@ impl Tracker {
             let s = &self.states[ti];
             let set = s.set(&tables);
             let mean = set.mean_position();
-            let mean_hist = s.reference_from_hist.inverse_transform_point(&Point3::from(mean)).coords;
+            let mean_hist = s
+                .reference_from_hist
+                .inverse_transform_point(&Point3::from(mean))
+                .coords;
             let (tcov, tstd) = set.translation_covariance();
             let mixture = set.mixture();
-            let mut summary =
-                summarise_rotation(&tables.grid, &mixture, &mean_hist, s.rotation.as_ref(), &self.config.estimate);
+            let mut summary = summarise_rotation(
+                &tables.grid,
+                &mixture,
+                &mean_hist,
+                s.rotation.as_ref(),
+                &self.config.estimate,
+            );
             let rotation_hist = summary.rotation;
             let to_ref = s.reference_from_hist.rotation;
             summary.rotation = to_ref * rotation_hist;
@@ -796,11 +852,14 @@ impl Tracker {
         }
         let positions: Vec<Vector3<f64>> = src_idx.iter().map(|&i| s.positions[i]).collect();
         self.scratch.resize(s.hist.len(), 0.0);
-        self.scratch.par_chunks_mut(n).zip(s.hist.par_chunks(n)).for_each(|(dst, src)| {
-            for (d, &i) in dst.iter_mut().zip(&src_idx) {
-                *d = src[i];
-            }
-        });
+        self.scratch
+            .par_chunks_mut(n)
+            .zip(s.hist.par_chunks(n))
+            .for_each(|(dst, src)| {
+                for (d, &i) in dst.iter_mut().zip(&src_idx) {
+                    *d = src[i];
+                }
+            });
         std::mem::swap(&mut self.scratch, &mut s.hist);
         s.positions = positions;
         s.weights = new_w;
@@ -819,36 +878,6 @@ fn normalise(w: &mut [f64]) {
         let u = 1.0 / w.len().max(1) as f64;
         w.fill(u);
     }
-}
-
-/// Each particle's histogram (a column of the bin-major layout) rescaled to sum to 1.
-fn normalise_columns(h: &mut [f32], n: usize) {
-    let sums = h
-        .par_chunks(n * 1024)
-        .map(|c| {
-            let mut acc = vec![0f64; n];
-            for row in c.chunks(n) {
-                for (a, v) in acc.iter_mut().zip(row) {
-                    *a += *v as f64;
-                }
-            }
-            acc
-        })
-        .reduce(
-            || vec![0f64; n],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    *x += y;
-                }
-                a
-            },
-        );
-    let inv: Vec<f32> = sums.iter().map(|s| if *s > 0.0 { (1.0 / s) as f32 } else { 0.0 }).collect();
-    h.par_chunks_mut(n).for_each(|row| {
-        for (v, i) in row.iter_mut().zip(&inv) {
-            *v *= i;
-        }
-    });
 }
 
 fn column_max(h: &[f32], n: usize) -> Vec<f32> {
@@ -887,7 +916,11 @@ fn floor_components(s: &mut TrackState, min_weight: f64) {
             let m = (0..s.n()).filter(|&i| s.sources[i] == c).count() as f64;
             for i in 0..s.n() {
                 if s.sources[i] == c {
-                    s.weights[i] = if wc > 0.0 { s.weights[i] * min_weight / wc } else { min_weight / m };
+                    s.weights[i] = if wc > 0.0 {
+                        s.weights[i] * min_weight / wc
+                    } else {
+                        min_weight / m
+                    };
                 }
             }
         }
