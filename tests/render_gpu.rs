@@ -135,7 +135,47 @@ fn tilted_plane_has_analytic_depth() {
         }
     }
     assert!(covered > 2000, "only {covered} pixels covered");
+    // Headlight Lambert on white: 255 (0.2 + 0.8 |n . ray|), flat over each triangle.
+    let mut shaded = 0;
+    for y in (4..k.height - 4).step_by(5) {
+        for x in (4..k.width - 4).step_by(5) {
+            let around = (x - 1..=x + 1).all(|xx| (y - 1..=y + 1).all(|yy| out.depth.get(xx, yy) > 0.0));
+            if !around {
+                continue; // derivatives at silhouettes use helper pixels
+            }
+            let ray = pixel_ray(&k, x, y).normalize();
+            let want = 255.0 * (0.2 + 0.8 * n.dot(&ray).abs());
+            let got = out.color.data[(y * k.width + x) as usize];
+            for c in got {
+                assert!(
+                    (c as f64 - want).abs() <= 3.0,
+                    "colour {got:?} at ({x}, {y}), expected {want:.1}"
+                );
+            }
+            shaded += 1;
+        }
+    }
+    assert!(shaded > 50, "only {shaded} shaded samples");
+    eprintln!("tilted plane: {covered} pixels, worst depth error {worst:e} m");
     assert!(worst <= DEPTH_TOL_M as f64, "worst depth error {worst} m");
+    // The depth-only path (z-buffer read back) meets the same bound on the same pixels.
+    let mesh = r.upload_mesh(&square(1.2, [255, 255, 255])).unwrap();
+    let z = r.render_view_depths(&mesh, &k, &[pose], clip()).unwrap();
+    let mut worst_z = 0.0f64;
+    for y in 0..k.height {
+        for x in 0..k.width {
+            let d = z[0].get(x, y) as f64;
+            assert_eq!(d > 0.0, out.depth.get(x, y) > 0.0, "coverage at ({x}, {y})");
+            if d > 0.0 {
+                worst_z = worst_z.max((d - plane_depth(&k, x, y, &p0, &n)).abs());
+            }
+        }
+    }
+    eprintln!("tilted plane, depth only: worst depth error {worst_z:e} m");
+    assert!(
+        worst_z <= DEPTH_TOL_M as f64,
+        "depth-only worst depth error {worst_z} m"
+    );
 }
 
 #[test]
@@ -177,6 +217,10 @@ fn box_face_at_one_metre() {
                 // The side faces lie behind the front face's outline (x / z shrinks with z), so
                 // the silhouette is exactly the front face.
                 assert_eq!(d, 0.0, "background expected at ({x}, {y})");
+            }
+            // So every covered pixel, edges included, is the front face.
+            if d > 0.0 {
+                assert!((d - 1.0).abs() <= DEPTH_TOL_M, "covered pixel ({x}, {y}) has depth {d}");
             }
         }
     }
@@ -245,6 +289,20 @@ fn batched_views_match_scene_renders() {
     let views = r.render_views(&mesh, &k, &poses, clip()).unwrap();
     let depths = r.render_view_depths(&mesh, &k, &poses, clip()).unwrap();
     assert_eq!(views.len(), poses.len());
+    // The streaming forms give the same views in the same order.
+    let mut streamed = Vec::new();
+    r.for_each_view(&mesh, &k, &poses, clip(), |i, v| streamed.push((i, v)))
+        .unwrap();
+    assert!(streamed.iter().enumerate().all(|(j, (i, v))| j == *i && *v == views[j]));
+    let mut streamed_depths = Vec::new();
+    r.for_each_view_depth(&mesh, &k, &poses, clip(), |i, d| streamed_depths.push((i, d)))
+        .unwrap();
+    assert!(
+        streamed_depths
+            .iter()
+            .enumerate()
+            .all(|(j, (i, d))| j == *i && *d == depths[j])
+    );
     for (i, pose) in poses.iter().enumerate() {
         let scene = r
             .render_scene(
@@ -283,7 +341,17 @@ fn batched_views_match_scene_renders() {
         assert!(cov * 100 <= a.len(), "view {i}: {cov} pixels change coverage");
         assert!(maxd <= DEPTH_TOL_M, "view {i}: depth differs by {maxd} m");
         assert!(col * 100 <= a.len(), "view {i}: {col} pixels change colour");
-        assert_eq!(depths[i], views[i].depth, "view {i}: depth-only render differs");
+        // The depth-only path reads the z-buffer instead of the shaded R32Float target.
+        let z = &depths[i].data_m;
+        let zcov = z.iter().zip(a).filter(|(x, y)| (**x > 0.0) != (**y > 0.0)).count();
+        let zmax = z
+            .iter()
+            .zip(a)
+            .filter(|(x, y)| **x > 0.0 && **y > 0.0)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
+        assert_eq!(zcov, 0, "view {i}: depth-only coverage differs");
+        assert!(zmax <= DEPTH_TOL_M, "view {i}: depth-only depth differs by {zmax} m");
     }
 }
 
@@ -305,6 +373,111 @@ fn views_are_chunked_across_atlases() {
         let want = 1.0 + 0.01 * i as f32;
         let got = d.get(side / 2, 4);
         assert!((got - want).abs() < DEPTH_TOL_M, "view {i}: {got} vs {want}");
+    }
+}
+
+/// Back faces of closed meshes are culled for speed; that must not change any render.
+#[test]
+fn culling_back_faces_changes_nothing() {
+    let r = renderer();
+    let k = Intrinsics::from_focal(64, 64, 90.0).unwrap();
+    let mug = mug_like();
+    let mut mixed = mug.clone();
+    mixed.triangles.iter_mut().step_by(2).for_each(|t| t.swap(1, 2));
+    let mut flipped = mug.clone();
+    flipped.triangles.iter_mut().for_each(|t| t.swap(1, 2));
+    let culled = r.upload_mesh(&mug).unwrap();
+    let unculled = r.upload_mesh(&mixed).unwrap();
+    let front_culled = r.upload_mesh(&flipped).unwrap();
+    assert!(culled.culls_back_faces() && front_culled.culls_back_faces());
+    assert!(!unculled.culls_back_faces());
+    let grid = RotationGrid::new(30).unwrap();
+    let poses: Vec<Pose> = (0..grid.len())
+        .step_by(grid.len() / 23)
+        .map(|i| Isometry3::from_parts(Translation3::new(0.0, 0.01, 0.4), grid.rotation(grid.unflat(i))))
+        .collect();
+    let two_sided = r.upload_mesh_two_sided(&mug).unwrap();
+    assert!(!two_sided.culls_back_faces());
+    let reference = r.render_view_depths(&unculled, &k, &poses, clip()).unwrap();
+    for mesh in [&culled, &front_culled, &two_sided] {
+        let got = r.render_view_depths(mesh, &k, &poses, clip()).unwrap();
+        for (i, (a, b)) in got.iter().zip(&reference).enumerate() {
+            let mut covered = 0;
+            for (x, y) in a.data_m.iter().zip(&b.data_m) {
+                assert_eq!(*x > 0.0, *y > 0.0, "view {i}: coverage changed by culling");
+                assert!((x - y).abs() <= 1e-6, "view {i}: depth {x} vs {y}");
+                covered += (*x > 0.0) as usize;
+            }
+            assert!(covered > 100, "view {i}: only {covered} pixels");
+        }
+    }
+}
+
+/// A camera inside a closed mesh sees its inside only when the mesh is uploaded two-sided.
+#[test]
+fn camera_inside_a_closed_mesh_needs_two_sided() {
+    let r = renderer();
+    let k = Intrinsics::from_focal(32, 32, 20.0).unwrap();
+    let room = builtin_box([1.0, 1.0, 1.0], [[100, 100, 100], [150, 150, 150]]);
+    let culled = r.upload_mesh(&room).unwrap();
+    let two_sided = r.upload_mesh_two_sided(&room).unwrap();
+    let inside = [Pose::identity()];
+    let d = r.render_view_depths(&two_sided, &k, &inside, clip()).unwrap();
+    assert!(
+        (d[0].get(16, 16) - 0.5).abs() < DEPTH_TOL_M,
+        "far wall at 0.5 m: {}",
+        d[0].get(16, 16)
+    );
+    let d = r.render_view_depths(&culled, &k, &inside, clip()).unwrap();
+    assert!(d[0].data_m.iter().all(|v| *v == 0.0), "culled walls seen from inside");
+}
+
+/// Views wider than an atlas still render, one per atlas.
+#[test]
+fn views_wider_than_an_atlas_render() {
+    let r = renderer();
+    let wide = pregrasp::render::MAX_ATLAS_SIDE_PX + 16;
+    if wide > r.max_image_side_px() {
+        return; // the device limit is the atlas side: nothing wider can be asked for
+    }
+    let k = Intrinsics::from_focal(wide, 4, 4.0).unwrap();
+    assert_eq!(
+        r.views_per_atlas(wide, 4),
+        pregrasp::render::MAX_ATLAS_SIDE_PX as usize / 4
+    );
+    let mesh = r.upload_mesh(&square(0.5, [255, 255, 255])).unwrap();
+    let d = r
+        .render_view_depths(&mesh, &k, &[Isometry3::translation(0.0, 0.0, 1.5)], clip())
+        .unwrap();
+    assert!((d[0].get(wide / 2, 2) - 1.5).abs() < DEPTH_TOL_M);
+    assert_eq!(d[0].get(0, 2), 0.0);
+}
+
+/// One renderer shared by threads gives the same images as used alone.
+#[test]
+fn renders_from_several_threads_agree() {
+    let r = renderer();
+    let k = Intrinsics::from_focal(48, 40, 50.0).unwrap();
+    let mesh = r.upload_mesh(&mug_like()).unwrap();
+    let grid = RotationGrid::new(30).unwrap();
+    let poses: Vec<Pose> = (0..12)
+        .map(|i| Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.45), grid.rotation(grid.unflat(i * 37))))
+        .collect();
+    let alone = r.render_view_depths(&mesh, &k, &poses, clip()).unwrap();
+    let handles: Vec<_> = (0..3)
+        .map(|_| {
+            let (r, mesh, poses) = (r.clone(), mesh.clone(), poses.clone());
+            std::thread::spawn(move || {
+                (0..4)
+                    .map(|_| r.render_view_depths(&mesh, &k, &poses, clip()).unwrap())
+                    .collect::<Vec<_>>()
+            })
+        })
+        .collect();
+    for h in handles {
+        for got in h.join().unwrap() {
+            assert_eq!(got, alone);
+        }
     }
 }
 

@@ -1,16 +1,18 @@
 // Off-screen rendering of triangle meshes with pinhole intrinsics.
 //
-// One storage-buffer record per draw (selected by the instance index, so one bind group serves
-// every draw of a submit): the camera_from_object transform, the pinhole intrinsics of the
-// view, its clip range and the instance id to write into the mask.
+// One uniform record per draw (all records of a submit in one buffer, selected by a dynamic
+// offset): the camera_from_object transform, the pinhole intrinsics of the view, its clip range
+// and the instance id to write into the mask. A uniform (rather than a storage array indexed by
+// the instance index) lets a software rasteriser load it once per draw instead of per vertex.
 //
 // Projection: pixel (u, v) (u right, v down, pixel centres at integer + 0.5) of a point
 // (x, y, z) in the optical frame (x right, y down, z forward) is u = fx x / z + cx,
 // v = fy y / z + cy. The viewport of a view spans its `width` x `height` pixels, so
 // ndc_x = 2 u / width - 1 and (wgpu's NDC is y up) ndc_y = 1 - 2 v / height; multiplied by
-// w = z this is linear in the point. Depth in the z-buffer is reversed (1 at near, 0 at far,
-// compare Greater) for precision; the metric z-depth itself is written to an R32Float target
-// from the perspective-correct interpolated camera-frame point.
+// w = z this is linear in the point. The z-buffer holds reversed depth
+// d = near (far - z) / ((far - near) z) (1 at near, 0 at far, compare Greater; with f32 this
+// resolves about 1e-7 of the depth); it is read back and converted to metric z-depth on the
+// CPU, so depth-only renders need no fragment shader.
 
 struct Draw {
     // Column-major camera_from_object (rotation and translation), metres.
@@ -23,7 +25,7 @@ struct Draw {
     ids: vec4<u32>,
 };
 
-@group(0) @binding(0) var<storage, read> draws: array<Draw>;
+@group(0) @binding(0) var<uniform> draw: Draw;
 
 struct VertexIn {
     @location(0) position_m: vec3<f32>,
@@ -38,8 +40,8 @@ struct VertexOut {
 };
 
 @vertex
-fn vs_main(v: VertexIn, @builtin(instance_index) draw_index: u32) -> VertexOut {
-    let d = draws[draw_index];
+fn vs_main(v: VertexIn) -> VertexOut {
+    let d = draw;
     let p = (d.camera_from_object * vec4<f32>(v.position_m, 1.0)).xyz;
     let fx = d.focal_principal.x;
     let fy = d.focal_principal.y;
@@ -75,34 +77,19 @@ fn shade(p: vec3<f32>, color: vec3<f32>) -> vec3<f32> {
 }
 
 struct SceneOut {
-    @location(0) depth_m: f32,
-    @location(1) color: vec4<f32>,
-    @location(2) instance_id: u32,
+    @location(0) color: vec4<f32>,
+    @location(1) instance_id: u32,
 };
 
 @fragment
 fn fs_scene(f: VertexOut) -> SceneOut {
     var out: SceneOut;
-    out.depth_m = f.point_in_camera_m.z;
     out.color = vec4<f32>(shade(f.point_in_camera_m, f.color), 1.0);
     out.instance_id = f.instance_id;
     return out;
 }
 
-struct ViewOut {
-    @location(0) depth_m: f32,
-    @location(1) color: vec4<f32>,
-};
-
 @fragment
-fn fs_view(f: VertexOut) -> ViewOut {
-    var out: ViewOut;
-    out.depth_m = f.point_in_camera_m.z;
-    out.color = vec4<f32>(shade(f.point_in_camera_m, f.color), 1.0);
-    return out;
-}
-
-@fragment
-fn fs_depth(f: VertexOut) -> @location(0) f32 {
-    return f.point_in_camera_m.z;
+fn fs_view(f: VertexOut) -> @location(0) vec4<f32> {
+    return vec4<f32>(shade(f.point_in_camera_m, f.color), 1.0);
 }
