@@ -10,6 +10,7 @@ use pregrasp::generate::{GenerateConfig, GenerateError, generate_sequence, load_
 use pregrasp::geometry::Pose;
 use pregrasp::mesh::Mesh;
 use pregrasp::render::Renderer;
+use pregrasp::tracker::CameraMount;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
@@ -39,6 +40,7 @@ fn args(out: &Path) -> Args {
         targets: vec![],
         frame_period_ms: 100.0,
         look_away_probability: 0.5,
+        occluder_probability: 0.0,
     }
 }
 
@@ -104,7 +106,11 @@ fn median(v: &mut [f64]) -> f64 {
 fn generated_ground_truth_agrees_with_its_own_depth() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("gen");
-    run(args(&out)).unwrap();
+    // exactly the command (full 640x480 images)
+    let mut a = args(&out);
+    a.width = 640;
+    a.height = 480;
+    run(a).unwrap();
     let roots = find_sequences(&out).unwrap();
     assert_eq!(roots.len(), 1);
     let seq = Sequence::open(&roots[0]).unwrap();
@@ -171,12 +177,13 @@ fn files_of(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
     let mut out = Vec::new();
     let mut stack = vec![dir.to_path_buf()];
     while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
+        for e in std::fs::read_dir(&d).expect("readable output folder") {
+            let p = e.expect("readable folder entry").path();
             if p.is_dir() {
                 stack.push(p);
             } else {
-                out.push((p.strip_prefix(dir).unwrap().to_path_buf(), std::fs::read(&p).unwrap()));
+                let rel = p.strip_prefix(dir).expect("inside the folder").to_path_buf();
+                out.push((rel, std::fs::read(&p).expect("readable file")));
             }
         }
     }
@@ -278,10 +285,70 @@ fn odometry_drifts_while_localisation_stays_within_its_bound() {
             .norm();
         assert!(d > 2.0 && d < 4.0, "{cam} {d} m from the table centre");
     }
+    // the tracker's view of it: mounts, frames by capture time, odometry
+    let mounts = g.camera_mounts();
+    assert_eq!(mounts.len(), 3);
+    assert!(matches!(mounts["robot"], CameraMount::Robot { .. }));
+    assert!(matches!(mounts["ext1"], CameraMount::Stationary { .. }));
+    let frames = g.camera_frames(0, 1);
+    assert_eq!(frames.len(), 3);
+    assert!(frames.windows(2).all(|w| w[0].stamp_ns <= w[1].stamp_ns));
+    let names: Vec<&str> = g.sequence.rig.objects.iter().map(|o| o.name.as_str()).collect();
+    let dets: Vec<_> = (0..60)
+        .flat_map(|f| g.camera_frames(f, 1))
+        .flat_map(|c| c.detections)
+        .collect();
+    assert!(dets.len() > 100 && dets.iter().all(|d| names.contains(&d.object.as_str())));
+    assert_eq!(g.robot_odometry(5).unwrap().odom_from_base, odo[&5].odom_from_base);
+    assert!(g.robot_odometry(60).is_none());
     // in-memory images match the metadata
     let img = &g.images["robot"][&0];
     assert_eq!((img.depth.width, img.depth.height), (32, 24));
     assert_eq!(img.masks.len(), 2);
+}
+
+#[test]
+fn an_occluder_box_hides_the_target_from_the_robot_camera_for_a_stretch() {
+    let models = load_models(None, &[]).unwrap();
+    let mut config = GenerateConfig::new(models);
+    config.frames = 40;
+    config.width = 64;
+    config.height = 48;
+    config.look_away_probability = 0.0;
+    config.occluder_probability = 1.0;
+    let mut placed_occluders = 0;
+    for seed in 0..8u64 {
+        config.target = Some(["box", "can", "mug"][seed as usize % 3].to_string());
+        let g = generate_sequence(renderer(), &config, seed).unwrap();
+        let Some((_, size)) = g.occluder else {
+            eprintln!("seed {seed}: no room for the occluder");
+            continue;
+        };
+        let rig = &g.sequence.rig;
+        let ti = rig
+            .objects
+            .iter()
+            .position(|o| Some(&o.name) == rig.target.as_ref())
+            .unwrap();
+        let robot = g.sequence.camera("robot").unwrap();
+        let fract: Vec<f64> = (0..40u32).map(|f| robot.gt_info[&f][ti].visib_fract.unwrap()).collect();
+        let in_view = |f: u32| robot.gt_info[&f][ti].px_count_all.unwrap() > 0;
+        let hidden = (0..40u32).filter(|&f| in_view(f) && fract[f as usize] < 0.1).count();
+        eprintln!("seed {seed}: occluder {size:.2?}, hidden in {hidden} frames, visible fractions {fract:.2?}");
+        assert!(
+            hidden >= 3,
+            "seed {seed}: the occluder hides the target in only {hidden} frames"
+        );
+        assert!(
+            fract[35..].iter().any(|f| *f > 0.3),
+            "seed {seed}: the target never reappears"
+        );
+        placed_occluders += 1;
+    }
+    assert!(
+        placed_occluders >= 3,
+        "only {placed_occluders} of 8 sequences had room for the occluder"
+    );
 }
 
 #[test]

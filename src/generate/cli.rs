@@ -44,6 +44,10 @@ pub struct Args {
     /// Probability that the robot camera looks away from the target for a stretch of frames.
     #[arg(long, default_value_t = 0.5)]
     pub look_away_probability: f64,
+    /// Probability that a box on the table hides the target from the robot camera for a
+    /// stretch of the approach.
+    #[arg(long, default_value_t = 0.0)]
+    pub occluder_probability: f64,
 }
 
 impl Args {
@@ -59,12 +63,7 @@ impl Args {
         c.stagger_ms = self.stagger_ms;
         c.frame_period_ms = self.frame_period_ms;
         c.look_away_probability = self.look_away_probability;
-        if !(0.0..=1.0).contains(&self.look_away_probability) {
-            return Err(super::GenerateError::Settings(format!(
-                "--look-away-probability {} must lie in [0, 1]",
-                self.look_away_probability
-            )));
-        }
+        c.occluder_probability = self.occluder_probability;
         for t in &self.targets {
             if !c.models.iter().any(|m| &m.name == t) {
                 return Err(super::GenerateError::UnknownObject {

@@ -27,6 +27,7 @@ use crate::dataset::{
 use crate::geometry::Pose;
 use crate::mesh::{self, Mesh, MeshError};
 use crate::render::{ClipRange, MeshHandle, RenderError, Renderer, SceneObject};
+use crate::tracker::{CameraFrame, CameraMount, RobotOdometry};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
@@ -49,6 +50,10 @@ pub const CLIP: ClipRange = ClipRange {
 };
 /// Smallest image side we generate, pixels.
 pub const MIN_IMAGE_SIDE_PX: u32 = 16;
+/// A random subset holds at most this many objects.
+pub const MAX_RANDOM_OBJECTS: usize = 5;
+/// Random subsets drawn before a layout error is reported.
+const LAYOUT_ATTEMPTS: usize = 20;
 /// Instance id of the first object in the rendered instance mask (the table and floor use 0).
 const FIRST_INSTANCE: u16 = 1;
 
@@ -201,8 +206,8 @@ fn models_info_ids(dir: &Path) -> BTreeMap<String, u32> {
 pub struct GenerateConfig {
     /// The pool of models.
     pub models: Vec<ModelSpec>,
-    /// Place every model of the pool; otherwise a random subset of 2 (or all, if fewer) up to
-    /// all of them.
+    /// Place every model of the pool; otherwise a random subset of 2 (or all, if fewer) to
+    /// [`MAX_RANDOM_OBJECTS`] of them.
     pub place_all: bool,
     /// The target object (must be placed); `None`: a random placed object.
     pub target: Option<String>,
@@ -219,6 +224,10 @@ pub struct GenerateConfig {
     pub localisation_sigma: LocalisationSigma,
     /// Probability that the robot camera looks away from the target for a stretch of frames.
     pub look_away_probability: f64,
+    /// Probability that a box (rendered, not tracked) stands on the table between the target
+    /// and the robot camera's path, hiding the target from the robot camera for a stretch
+    /// (skipped when it does not fit between the objects).
+    pub occluder_probability: f64,
     /// Write colour images and visible masks as well as depth.
     pub write_rgb: bool,
     pub write_masks: bool,
@@ -243,6 +252,7 @@ impl GenerateConfig {
                 rotation_rad: 0.009,
             },
             look_away_probability: 0.5,
+            occluder_probability: 0.0,
             write_rgb: true,
             write_masks: true,
         }
@@ -279,6 +289,14 @@ impl GenerateConfig {
                 self.stagger_ms,
                 self.frame_period_ms / 2.0
             ));
+        }
+        for (what, p) in [
+            ("look-away", self.look_away_probability),
+            ("occluder", self.occluder_probability),
+        ] {
+            if !(0.0..=1.0).contains(&p) {
+                return bad(format!("{what} probability {p} must lie in [0, 1]"));
+            }
         }
         if self.odometry_noise_alpha.iter().any(|a| !a.is_finite() || *a < 0.0) {
             return bad("odometry noise alphas must be finite and >= 0".into());
@@ -325,9 +343,76 @@ pub struct GeneratedSequence {
     pub world_from_base_true: BTreeMap<u32, Pose>,
     /// Frames in which the robot camera looks away from the target.
     pub look_away_frames: Vec<u32>,
+    /// The occluder box, if any: `world_from_box` and its size (x, y, z), metres.
+    pub occluder: Option<(Pose, [f64; 3])>,
 }
 
 impl GeneratedSequence {
+    /// What the tracker may know of the rig: the stationary cameras' calibration and the robot
+    /// camera's arm pose at the first frame (later ones come with [`Self::robot_odometry`]).
+    pub fn camera_mounts(&self) -> BTreeMap<String, CameraMount> {
+        let mut out = BTreeMap::new();
+        for (name, cam) in &self.sequence.rig.cameras {
+            let mount = match cam.mount {
+                Mount::Robot => {
+                    let Some(first) = self.sequence.odometry.as_ref().and_then(|o| o.values().next()) else {
+                        continue;
+                    };
+                    CameraMount::Robot {
+                        base_from_camera: first.base_from_camera,
+                    }
+                }
+                Mount::Stationary => {
+                    let world_from_camera = self
+                        .sequence
+                        .cameras
+                        .get(name)
+                        .and_then(|c| c.frames.values().next())
+                        .and_then(|f| f.camera_from_world)
+                        .map(|p| p.inverse())
+                        .unwrap_or_else(Pose::identity);
+                    CameraMount::Stationary { world_from_camera }
+                }
+            };
+            out.insert(name.clone(), mount);
+        }
+        out
+    }
+
+    /// One time step as the tracker takes it: every camera's noisy depth, colour and stand-in
+    /// detections ([`Sequence::detections`] with `detection_seed`), sorted by capture time.
+    pub fn camera_frames(&self, frame: u32, detection_seed: u64) -> Vec<CameraFrame> {
+        let mut out: Vec<CameraFrame> = self
+            .images
+            .iter()
+            .filter_map(|(cam, frames)| {
+                let img = frames.get(&frame)?;
+                let meta = self.sequence.cameras.get(cam)?.frames.get(&frame)?;
+                Some(CameraFrame {
+                    camera: cam.clone(),
+                    stamp_ns: meta.stamp_ns,
+                    intrinsics: meta.intrinsics,
+                    depth: img.depth.clone(),
+                    color: Some(img.color.clone()),
+                    detections: self.sequence.detections(cam, frame, detection_seed),
+                })
+            })
+            .collect();
+        out.sort_by_key(|f| f.stamp_ns);
+        out
+    }
+
+    /// The robot's odometry at a time step (no ground truth in it).
+    pub fn robot_odometry(&self, frame: u32) -> Option<RobotOdometry> {
+        let o = self.sequence.odometry.as_ref()?.get(&frame)?;
+        Some(RobotOdometry {
+            stamp_ns: o.stamp_ns,
+            odom_from_base: o.odom_from_base,
+            world_from_odom: o.world_from_odom,
+            base_from_camera: o.base_from_camera,
+        })
+    }
+
     /// Writes the sequence into `dir` (created; meshes into `dir/models/`).
     pub fn write(&self, dir: &Path) -> Result<()> {
         let mut seq = self.sequence.clone();
@@ -343,6 +428,9 @@ impl GeneratedSequence {
     }
 }
 
+/// Per frame id: capture stamp and `world_from_camera`.
+type FramePoses = BTreeMap<u32, (i64, Pose)>;
+
 /// Everything decided before rendering.
 struct Prepared<'a> {
     config: &'a GenerateConfig,
@@ -353,10 +441,11 @@ struct Prepared<'a> {
     world_from_object: Vec<Pose>,
     scene: Vec<SceneObject>,
     /// Per camera: intrinsics, and per frame id the stamp and `world_from_camera`.
-    cameras: BTreeMap<String, (Intrinsics, BTreeMap<u32, (i64, Pose)>)>,
+    cameras: BTreeMap<String, (Intrinsics, FramePoses)>,
     odometry: BTreeMap<u32, OdometrySample>,
     world_from_base_true: BTreeMap<u32, Pose>,
     look_away_frames: Vec<u32>,
+    occluder: Option<(Pose, [f64; 3])>,
 }
 
 fn table_mesh() -> Mesh {
@@ -385,30 +474,45 @@ fn floor_tile(dark: bool) -> Mesh {
 fn prepare<'a>(renderer: &Renderer, config: &'a GenerateConfig, seed: u64) -> Result<Prepared<'a>> {
     config.validate()?;
     let intrinsics = plan::generated_intrinsics(config.width, config.height)?;
-    // which objects, which target
+    // which objects, which target; a random subset that does not fit is drawn again
     let mut rng = ChaCha8Rng::seed_from_u64(stream_seed(seed, &[b"objects"]));
+    let mut place_rng = ChaCha8Rng::seed_from_u64(stream_seed(seed, &[b"placement"]));
     let n = config.models.len();
-    let mut chosen: Vec<usize> = (0..n).collect();
-    if !config.place_all {
-        chosen.shuffle(&mut rng);
-        let k = rng.random_range(n.min(2)..=n);
-        chosen.truncate(k);
-        chosen.sort_unstable();
-    }
-    let target_index = match &config.target {
-        Some(t) => {
-            let i = config.models.iter().position(|m| &m.name == t).unwrap_or(0);
-            if !chosen.contains(&i) {
-                chosen.push(i);
-                chosen.sort_unstable();
-            }
-            i
-        }
-        None => chosen[rng.random_range(0..chosen.len())],
-    };
     let meshes: Vec<&Mesh> = config.models.iter().map(|m| &m.mesh).collect();
-    let mut rng = ChaCha8Rng::seed_from_u64(stream_seed(seed, &[b"placement"]));
-    let placed = plan::place_objects(&meshes, &chosen, &mut rng).map_err(GenerateError::Layout)?;
+    let wanted_target = config
+        .target
+        .as_ref()
+        .and_then(|t| config.models.iter().position(|m| &m.name == t));
+    let attempts = if config.place_all { 1 } else { LAYOUT_ATTEMPTS };
+    let mut last_error = String::new();
+    let mut layout = None;
+    for _ in 0..attempts {
+        let mut chosen: Vec<usize> = (0..n).collect();
+        if !config.place_all {
+            chosen.shuffle(&mut rng);
+            let k = rng.random_range(n.min(2)..=n.min(MAX_RANDOM_OBJECTS));
+            chosen.truncate(k);
+        }
+        let target_index = match wanted_target {
+            Some(i) => {
+                if !chosen.contains(&i) {
+                    chosen.pop();
+                    chosen.push(i);
+                }
+                i
+            }
+            None => chosen[rng.random_range(0..chosen.len())],
+        };
+        chosen.sort_unstable();
+        match plan::place_objects(&meshes, &chosen, &mut place_rng) {
+            Ok(placed) => {
+                layout = Some((placed, target_index));
+                break;
+            }
+            Err(e) => last_error = e,
+        }
+    }
+    let (placed, target_index) = layout.ok_or(GenerateError::Layout(last_error))?;
     let models: Vec<&ModelSpec> = placed.iter().map(|p| &config.models[p.model]).collect();
     let world_from_object: Vec<Pose> = placed.iter().map(|p| p.world_from_object).collect();
     let target_pos = placed
@@ -497,7 +601,25 @@ fn prepare<'a>(renderer: &Renderer, config: &'a GenerateConfig, seed: u64) -> Re
         }),
     };
 
-    // the scene to render: objects first (instance ids from 1), then table and floor (id 0)
+    let mut rng = ChaCha8Rng::seed_from_u64(stream_seed(seed, &[b"occluder"]));
+    let occluder = if rng.random::<f64>() < config.occluder_probability {
+        let target_placed = placed
+            .iter()
+            .find(|p| p.model == target_index)
+            .ok_or_else(|| GenerateError::Layout("the target was not placed".into()))?;
+        let robot_eyes: Vec<Point3<f64>> = robot
+            .world_from_base
+            .iter()
+            .zip(&robot.base_from_camera)
+            .map(|(b, c)| Point3::from((b * c).translation.vector))
+            .collect();
+        plan::place_occluder(&meshes, &placed, target_placed, &robot_eyes, &mut rng)
+    } else {
+        None
+    };
+
+    // the scene to render: objects first (instance ids from 1), then table, occluder and floor
+    // (id 0: not tracked)
     let mut scene = Vec::new();
     for (i, (m, wfo)) in models.iter().zip(&world_from_object).enumerate() {
         scene.push(SceneObject {
@@ -511,6 +633,13 @@ fn prepare<'a>(renderer: &Renderer, config: &'a GenerateConfig, seed: u64) -> Re
         world_from_object: translation(0.0, 0.0, -plan::TABLE_THICKNESS_M / 2.0),
         instance_id: 0,
     });
+    if let Some((pose, size)) = &occluder {
+        scene.push(SceneObject {
+            mesh: renderer.upload_mesh(&mesh::builtin_box(*size, [[60, 110, 170], [200, 200, 200]]))?,
+            world_from_object: *pose,
+            instance_id: 0,
+        });
+    }
     let tiles: [MeshHandle; 2] = [
         renderer.upload_mesh(&floor_tile(false))?,
         renderer.upload_mesh(&floor_tile(true))?,
@@ -548,6 +677,7 @@ fn prepare<'a>(renderer: &Renderer, config: &'a GenerateConfig, seed: u64) -> Re
         odometry,
         world_from_base_true,
         look_away_frames: robot.look_away_frames,
+        occluder,
     })
 }
 
@@ -713,6 +843,7 @@ pub fn generate_sequence(renderer: &Renderer, config: &GenerateConfig, seed: u64
         images: images.into_inner().unwrap_or_else(|e| e.into_inner()),
         world_from_base_true: prep.world_from_base_true.clone(),
         look_away_frames: prep.look_away_frames.clone(),
+        occluder: prep.occluder,
     })
 }
 

@@ -13,7 +13,7 @@ use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaterni
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
-use std::f64::consts::{PI, TAU};
+use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
 /// Height of the table top above the floor, metres.
 pub const TABLE_HEIGHT_M: f64 = 0.75;
@@ -169,6 +169,72 @@ pub fn place_objects(meshes: &[&Mesh], chosen: &[usize], rng: &mut ChaCha8Rng) -
         });
     }
     Ok(placed)
+}
+
+/// Thickness of the occluder box, metres.
+pub const OCCLUDER_THICKNESS_M: f64 = 0.03;
+/// Gap between the target's footprint and the occluder, metres.
+pub const OCCLUDER_DISTANCE_M: f64 = 0.2;
+/// The occluder hides the whole target from sight lines below this elevation.
+pub const OCCLUDER_HIDES_BELOW_RAD: f64 = 20.0 * PI / 180.0;
+
+/// A box standing on the table between the target and the robot camera's early position:
+/// [`OCCLUDER_DISTANCE_M`] in front of the target's footprint, wider than the target, and
+/// taller than its top by as much as a sight line rising at [`OCCLUDER_HIDES_BELOW_RAD`]
+/// gains over that distance. It hides the target from the robot camera while the camera is
+/// far and low; as the arm rises (and the base turns) the target reappears. `None` when it
+/// would overlap another object or leave the table. Returns `world_from_box` (box centred at
+/// its origin) and its size.
+pub fn place_occluder(
+    meshes: &[&Mesh],
+    placed: &[PlacedObject],
+    target: &PlacedObject,
+    robot_eyes: &[Point3<f64>],
+    rng: &mut ChaCha8Rng,
+) -> Option<(Pose, [f64; 3])> {
+    if robot_eyes.is_empty() {
+        return None;
+    }
+    let mesh = meshes[target.model];
+    let top_z = (0..mesh.vertices_m.len() as u32)
+        .map(|i| (target.world_from_object * mesh.vertex(i)).z)
+        .fold(0.0, f64::max);
+    let t = target.world_from_object.translation.vector;
+    let r_t = target.footprint_radius_m;
+    let width = 2.0 * r_t + 0.1;
+    let n = robot_eyes.len();
+    // nearer the target when there is no room further out
+    for gap_m in [OCCLUDER_DISTANCE_M, 0.15, 0.1] {
+        let d = r_t + gap_m;
+        let size = [width, OCCLUDER_THICKNESS_M, top_z + d * OCCLUDER_HIDES_BELOW_RAD.tan()];
+        let footprint = (width / 2.0).hypot(OCCLUDER_THICKNESS_M / 2.0);
+        for _ in 0..10 {
+            let k = ((n as f64) * rng.random_range(0.0..0.25)) as usize;
+            let eye = robot_eyes[k.min(n - 1)];
+            let dir = Vector2::new(eye.x - t.x, eye.y - t.y);
+            if dir.norm() < 1e-6 {
+                continue;
+            }
+            let dir = dir.normalize();
+            let side = Vector2::new(-dir.y, dir.x);
+            let c = Vector2::new(t.x, t.y) + dir * d;
+            let on_table = [-1.0, 1.0].iter().all(|a| {
+                [-1.0, 1.0].iter().all(|b| {
+                    let corner = c + side * (a * width / 2.0) + dir * (b * OCCLUDER_THICKNESS_M / 2.0);
+                    corner.x.abs() < TABLE_SIZE_M[0] / 2.0 && corner.y.abs() < TABLE_SIZE_M[1] / 2.0
+                })
+            });
+            let free = placed.iter().filter(|o| !std::ptr::eq(*o, target)).all(|o| {
+                let p = o.world_from_object.translation.vector;
+                (Vector2::new(p.x, p.y) - c).norm() > o.footprint_radius_m + footprint + 0.01
+            });
+            if on_table && free {
+                let yaw = dir.y.atan2(dir.x) + FRAC_PI_2;
+                return Some((planar(c.x, c.y, size[2] / 2.0, yaw), size));
+            }
+        }
+    }
+    None
 }
 
 /// Two stationary cameras about [`EXTERNAL_DISTANCE_M`] from `centre`, 70-150 degrees apart
@@ -455,7 +521,8 @@ mod tests {
                 if plan.look_away_frames.contains(&(k as u32)) {
                     // the target's centre projects at least 60 px outside the image
                     let uv = k640.project(&in_cam);
-                    let outside = uv.is_none_or(|[u, v]| u < -60.0 || u > 700.0 || v < -60.0 || v > 540.0);
+                    let outside =
+                        uv.is_none_or(|[u, v]| !(-60.0..=700.0).contains(&u) || !(-60.0..=540.0).contains(&v));
                     assert!(outside, "frame {k}: target at {uv:?} while looking away");
                 } else if plan.look_away_frames.iter().all(|&f| (f as i64 - k as i64).abs() > 4) {
                     // (the pan ramps over 3 frames on either side of the reported stretch)
