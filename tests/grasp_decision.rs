@@ -351,6 +351,10 @@ fn bad_queries_are_errors_not_panics() {
         point_m: [0.0; 3],
     });
     assert!(decide(&can, &gripper, &est, &samples, &q).is_err());
+    let mut bad = samples.clone();
+    bad.poses[3].translation.vector.x = f64::NAN;
+    let err = decide(&can, &gripper, &est, &bad, &query(None)).unwrap_err();
+    assert!(err.to_string().contains("sample 3"), "{err}");
     // an object wider than the stroke on every axis has no candidate
     let big = GraspObject::new(&mesh::builtin_box([0.2, 0.2, 0.2], [[1, 1, 1], [2, 2, 2]])).unwrap();
     assert!(decide(&big, &gripper, &standing(&big), &samples, &query(None)).is_err());
@@ -372,4 +376,29 @@ fn pads_above_the_object_fail_contact_and_a_palm_too_deep_fails_the_approach() {
     let d = decide(&can, &gripper, &est, &samples, &query(Some(deep))).unwrap();
     assert_eq!(d.p_success, 0.0);
     assert_eq!(d.reasons[0].test, FailureTest::Approach, "{:#?}", d.reasons);
+}
+
+#[test]
+fn a_flat_object_gets_its_top_grasp_lifted_clear_of_the_table() {
+    let gripper = Gripper::default_parallel_jaw();
+    // 3 cm thin: a grasp to the middle would put the finger tips into the table
+    let flat = GraspObject::new(&mesh::builtin_box([0.16, 0.12, 0.03], [[1, 1, 1], [2, 2, 2]])).unwrap();
+    let est = standing(&flat);
+    let samples = gaussian_samples(&est, [0.001; 3], [0.003; 3], 300, 14);
+    let d = decide(&flat, &gripper, &est, &samples, &query(None)).unwrap();
+    assert_eq!(d.decision, Verdict::Grasp, "{:#?}", d.reasons);
+    assert!(d.grasp.label.contains("lifted"), "{}", d.grasp.label);
+    // the top grasp is lifted: its finger tips end above the table by the clearance, the pads
+    // still on the box
+    let top = d
+        .candidates
+        .iter()
+        .find(|c| c.grasp.label.starts_with("top"))
+        .expect("a top candidate");
+    assert!(top.grasp.label.contains("lifted"), "{}", top.grasp.label);
+    let reference_from_gripper = est * top.grasp.object_from_gripper;
+    let tip = reference_from_gripper * nalgebra::Point3::new(0.0, 0.0, gripper.tip_z_m());
+    assert!(tip.z >= gripper.table_clearance_m, "{}", tip.z);
+    assert!(top.grasp.depth_m > 0.0 && top.grasp.depth_m < 0.015);
+    assert!(top.p_success > 0.95, "{}", top.p_success);
 }

@@ -10,6 +10,10 @@ use serde::{Deserialize, Serialize};
 pub const CANDIDATE_MIN_CLEARANCE_M: f64 = 0.004;
 /// How far the palm stays from the object's surface at the deepest generated grasp.
 pub const CANDIDATE_PALM_MARGIN_M: f64 = 0.008;
+/// Slab positions for off-centre candidates step by this share of the finger width.
+pub const SLAB_STEP_SHARE: f64 = 0.25;
+/// Least number of surface samples in a slab for an off-centre candidate.
+const SLAB_MIN_POINTS: usize = 10;
 /// A second, shallower candidate sits at this share of the deepest depth (more room for the
 /// palm when the pose is uncertain along the approach, less pad on the object).
 pub const CANDIDATE_SHALLOW_SHARE: f64 = 0.6;
@@ -57,16 +61,35 @@ impl Grasp {
         let (x_lo, x_hi) = object.extent_along(&x);
         let (y_lo, y_hi) = object.extent_along(&y);
         let (z_lo, _) = object.extent_along(&z);
-        let tcp = x * (x_lo + x_hi) * 0.5 + y * (y_lo + y_hi) * 0.5 + z * (z_lo + depth_m);
+        let across = x * (x_lo + x_hi) * 0.5 + y * (y_lo + y_hi) * 0.5;
+        Ok(Self::frame(object, x, y, z, across, z_lo, depth_m, x_hi - x_lo, label))
+    }
+
+    /// A grasp with its TCP at `across` (the object-frame point whose closing and lateral
+    /// components place the TCP) and `depth_m` past `near_m` along the approach.
+    #[allow(clippy::too_many_arguments)]
+    fn frame(
+        _object: &GraspObject,
+        x: Vector3<f64>,
+        y: Vector3<f64>,
+        z: Vector3<f64>,
+        across: Vector3<f64>,
+        near_m: f64,
+        depth_m: f64,
+        width_m: f64,
+        label: &str,
+    ) -> Self {
+        let across = across - z * across.dot(&z);
+        let tcp = across + z * (near_m + depth_m);
         let rot = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
-        Ok(Self {
+        Self {
             object_from_gripper: Pose::from_parts(Translation3::from(tcp), UnitQuaternion::from_rotation_matrix(&rot)),
             approach_in_object: [z.x, z.y, z.z],
             closing_in_object: [x.x, x.y, x.z],
             depth_m,
-            width_m: x_hi - x_lo,
+            width_m,
             label: label.to_string(),
-        })
+        }
     }
 
     /// A grasp from a gripper pose given by the caller: the other fields are measured on the
@@ -126,6 +149,9 @@ pub fn generate_candidates(object: &GraspObject, gripper: &Gripper) -> Vec<Grasp
                 let c: Vector3<f64> = axes.column(j).into();
                 let (clo, chi) = object.extent_along(&c);
                 if chi - clo + 2.0 * CANDIDATE_MIN_CLEARANCE_M > gripper.max_opening_m {
+                    if let Some(g) = off_centre(object, gripper, &(a * sign), &c, i, j) {
+                        out.push(g);
+                    }
                     continue;
                 }
                 for &depth in &depths {
@@ -142,6 +168,78 @@ pub fn generate_candidates(object: &GraspObject, gripper: &Gripper) -> Vec<Grasp
         }
     }
     out
+}
+
+/// Where the whole object is too wide for the stroke along `c`, the slab the fingers sweep
+/// (the finger width across the closing plane) may still fit: a handle, a neck. Among the
+/// slabs (surface samples within half a finger width of a position along `approach x c`)
+/// whose width along `c` fits, the one nearest the surface centroid is taken.
+fn off_centre(
+    object: &GraspObject,
+    gripper: &Gripper,
+    a: &Vector3<f64>,
+    c: &Vector3<f64>,
+    i: usize,
+    j: usize,
+) -> Option<Grasp> {
+    let b = a.cross(c);
+    let pts = object.surface_samples_m();
+    if pts.is_empty() {
+        return None;
+    }
+    let half = gripper.finger_size_m[1] * 0.5;
+    let centroid = pts.iter().map(|p| p.coords.dot(&b)).sum::<f64>() / pts.len() as f64;
+    let (b_lo, b_hi) = pts
+        .iter()
+        .map(|p| p.coords.dot(&b))
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| (l.min(v), h.max(v)));
+    let step = (gripper.finger_size_m[1] * SLAB_STEP_SHARE).max(1e-3);
+    let mut best: Option<(f64, f64, f64, f64, f64, f64)> = None; // (score, b0, c_mid, a_near, a_far, width)
+    let mut b0 = b_lo + half;
+    while b0 <= b_hi - half + 1e-9 {
+        let slab: Vec<_> = pts.iter().filter(|p| (p.coords.dot(&b) - b0).abs() <= half).collect();
+        if slab.len() >= SLAB_MIN_POINTS {
+            let range = |d: &Vector3<f64>| {
+                slab.iter()
+                    .map(|p| p.coords.dot(d))
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| (l.min(v), h.max(v)))
+            };
+            let (c_lo, c_hi) = range(c);
+            let (a_lo, a_hi) = range(a);
+            if c_hi - c_lo + 2.0 * CANDIDATE_MIN_CLEARANCE_M <= gripper.max_opening_m {
+                let score = (b0 - centroid).abs();
+                if best.is_none_or(|bst| score < bst.0) {
+                    best = Some((score, b0, (c_lo + c_hi) * 0.5, a_lo, a_hi, c_hi - c_lo));
+                }
+            }
+        }
+        b0 += step;
+    }
+    let (_, b0, c_mid, a_near, a_far, width) = best?;
+    let depth = ((a_far - a_near) * 0.5)
+        .min(gripper.reach_m() - CANDIDATE_PALM_MARGIN_M)
+        .max(0.0);
+    let label = format!(
+        "approach {}a{i}, close a{j}, off-centre {:.0} mm, depth {:.0} mm",
+        if a.dot(&object.principal_axes().column(i)) > 0.0 {
+            "+"
+        } else {
+            "-"
+        },
+        b0 * 1e3,
+        depth * 1e3
+    );
+    Some(Grasp::frame(
+        object,
+        *c,
+        b,
+        *a,
+        c * c_mid + b * b0,
+        a_near,
+        depth,
+        width,
+        &label,
+    ))
 }
 
 #[cfg(test)]
@@ -168,6 +266,38 @@ mod tests {
             assert!((t - z * t.dot(&z)).norm() < 1e-6);
             assert!(k.depth_m <= g.reach_m());
         }
+    }
+
+    /// A hammer lying flat: a 160 mm head (along x) at y = 0.1 and a 30 mm handle along y.
+    fn hammer() -> crate::mesh::Mesh {
+        let head = mesh::builtin_box([0.16, 0.04, 0.03], [[1, 2, 3], [4, 5, 6]]);
+        let handle = mesh::builtin_box([0.03, 0.2, 0.03], [[1, 2, 3], [4, 5, 6]]);
+        let mut v = head.vertices_m.clone();
+        for p in &mut v {
+            p[1] += 0.1;
+        }
+        let n = v.len() as u32;
+        v.extend(handle.vertices_m.iter().copied());
+        let mut t = head.triangles.clone();
+        t.extend(handle.triangles.iter().map(|t| [t[0] + n, t[1] + n, t[2] + n]));
+        crate::mesh::Mesh::new(v, None, t).unwrap()
+    }
+
+    #[test]
+    fn too_wide_overall_but_a_handle_fits_gives_an_off_centre_candidate() {
+        let o = GraspObject::with_kind(&hammer(), crate::grasp::SolidKind::ConvexHull).unwrap();
+        let g = Gripper::default_parallel_jaw();
+        let c = generate_candidates(&o, &g);
+        let off: Vec<_> = c.iter().filter(|k| k.label.contains("off-centre")).collect();
+        assert!(!off.is_empty(), "{:?}", c.iter().map(|g| &g.label).collect::<Vec<_>>());
+        // closing along x across the handle, away from the head
+        let k = off
+            .iter()
+            .find(|k| Vector3::from(k.closing_in_object).x.abs() > 0.99)
+            .expect("an off-centre grasp closing along x");
+        assert!(k.width_m < 0.035, "{}", k.width_m);
+        let t = k.object_from_gripper.translation.vector;
+        assert!(t.y < 0.1 - 0.02 - g.finger_size_m[1] * 0.5 + 1e-6, "{t}");
     }
 
     #[test]

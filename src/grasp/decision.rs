@@ -25,6 +25,8 @@ const Z95: f64 = 1.959_963_984_540_054;
 const FIRST_CONTACT_TOLERANCE_M: f32 = 0.0005;
 /// The groove holds the contact when it touches this close after the full pad.
 const GROOVE_TOLERANCE_M: f32 = 0.0001;
+/// The pad and groove contacts are measured this far before the first touch.
+const CONTACT_BACK_OFF_M: f32 = 0.0005;
 /// Contacts are looked for up to this distance from the pad at its first touch.
 const CONTACT_PREDICTION_M: f32 = 0.01;
 /// Two contact normals this close belong to one flat face.
@@ -320,7 +322,9 @@ impl GripperShapes {
             }
             // the pad where it first touches; the groove (the middle of the pad) at the same
             // place: does it touch as well (within the tolerance), and at what normal?
-            let at = PPose::from_translation(self.pad_pose[k].translation + vel * pad_toi);
+            // (backed off a little so that both are apart: a distance, not a penetration query)
+            let back_off = CONTACT_BACK_OFF_M.min(pad_toi);
+            let at = PPose::from_translation(self.pad_pose[k].translation + vel * (pad_toi - back_off));
             let near = |shape: &Cuboid| {
                 query::contact(&at, shape, obj_pose, obj, CONTACT_PREDICTION_M)
                     .ok()
@@ -490,6 +494,24 @@ pub fn decide(
     if samples.poses.is_empty() {
         return Err(GraspError::NoSamples);
     }
+    let finite = |p: &Pose| {
+        p.translation.vector.iter().all(|v| v.is_finite()) && p.rotation.coords.iter().all(|v| v.is_finite())
+    };
+    if !finite(estimate) {
+        return Err(GraspError::InvalidQuery(format!(
+            "the estimate is not finite: {estimate}"
+        )));
+    }
+    if let Some(i) = samples.poses.iter().position(|p| !finite(p)) {
+        return Err(GraspError::InvalidQuery(format!("pose sample {i} is not finite")));
+    }
+    if let Some(g) = &query.grasp
+        && !finite(&g.object_from_gripper)
+    {
+        return Err(GraspError::InvalidQuery(
+            "grasp.object_from_gripper is not finite".into(),
+        ));
+    }
     if let Some(pl) = &query.support_plane {
         pl.unit()?;
     }
@@ -521,6 +543,7 @@ pub fn decide(
                 )));
             }
             let cands = label_by_plane(cands, estimate, plane);
+            let cands = lift_above_plane(object, gripper, cands, estimate, plane)?;
             // screen every candidate on a prefix of the samples, then evaluate the best few
             // on all of them
             let n_screen = SCREEN_SAMPLES.min(n);
@@ -588,6 +611,39 @@ pub fn decide(
         uncertainty,
         candidates,
     })
+}
+
+/// Extra height above the gripper's table clearance when a candidate is lifted.
+pub const LIFT_MARGIN_M: f64 = 0.002;
+
+/// Candidates whose gripper would come closer to the table than its clearance (planned on the
+/// estimate) are moved up along the table normal until they clear it by [`LIFT_MARGIN_M`]
+/// more: a top grasp of a flat object gets shallower, a side grasp moves up the object.
+fn lift_above_plane(
+    object: &GraspObject,
+    gripper: &Gripper,
+    cands: Vec<Grasp>,
+    estimate: &Pose,
+    plane: Option<&SupportPlane>,
+) -> Result<Vec<Grasp>, GraspError> {
+    let Some(pl) = plane else {
+        return Ok(cands);
+    };
+    let (n, _) = pl.unit()?;
+    cands
+        .into_iter()
+        .map(|g| {
+            let reference_from_gripper = estimate * g.object_from_gripper;
+            let clearance = table_clearance_m(gripper, &pl.transformed(&reference_from_gripper.inverse()))?;
+            let lift = gripper.table_clearance_m + LIFT_MARGIN_M - clearance;
+            if lift <= 0.0 {
+                return Ok(g);
+            }
+            let lifted = nalgebra::Translation3::from(n * lift) * reference_from_gripper;
+            let label = format!("{}, lifted {:.0} mm", g.label, lift * 1e3);
+            Ok(Grasp::from_pose(object, estimate.inverse() * lifted, &label))
+        })
+        .collect()
 }
 
 /// Prefixes candidate labels with `top`, `side` or `from below` relative to the table.

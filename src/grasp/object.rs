@@ -24,6 +24,10 @@ pub const DECOMPOSE_ABOVE_CONCAVITY: f64 = 0.25;
 /// lies inside the full one, touching it in every listed direction (for a 5 cm radius, the
 /// gap between directions costs about 0.3 mm).
 pub const HULL_SUPPORT_DIRECTIONS: usize = 256;
+/// Two principal spreads closer than this share are treated as equal (arbitrary axes).
+const PCA_DEGENERATE_SHARE: f64 = 0.05;
+/// Surface samples kept per object (principal axes, local widths of candidates).
+pub const SURFACE_SAMPLES: usize = 4000;
 
 /// How the solid was built.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -39,6 +43,7 @@ struct Inner {
     kind: SolidKind,
     shape: SharedShape,
     hull_vertices_m: Vec<Point3<f64>>,
+    surface_samples_m: Vec<Point3<f64>>,
     principal_axes: Matrix3<f64>,
     concavity: f64,
     n_parts: usize,
@@ -99,6 +104,11 @@ impl GraspObject {
     pub fn principal_axes(&self) -> &Matrix3<f64> {
         &self.0.principal_axes
     }
+    /// Area-uniform points on the mesh surface (object frame; fixed seed): local widths for
+    /// off-centre candidates.
+    pub fn surface_samples_m(&self) -> &[Point3<f64>] {
+        &self.0.surface_samples_m
+    }
     /// 1 - mesh volume / hull volume (0 for a convex closed mesh).
     pub fn concavity(&self) -> f64 {
         self.0.concavity
@@ -138,6 +148,8 @@ fn build(mesh: &Mesh, content_hash: String, kind: SolidKind) -> Result<Inner, Gr
     } else {
         0.0
     };
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let surface_samples_m = mesh.sample_surface(SURFACE_SAMPLES, &mut rng);
     let (shape, n_parts) = match kind {
         SolidKind::ConvexHull => (SharedShape::new(hull), 1),
         SolidKind::ConvexDecomposition => {
@@ -160,7 +172,8 @@ fn build(mesh: &Mesh, content_hash: String, kind: SolidKind) -> Result<Inner, Gr
         kind,
         shape,
         hull_vertices_m,
-        principal_axes: principal_axes(mesh),
+        principal_axes: principal_axes(&surface_samples_m),
+        surface_samples_m,
         concavity,
         n_parts,
     })
@@ -223,10 +236,8 @@ fn hull_volume_m3(hull: &parry3d::shape::ConvexPolyhedron) -> f64 {
 }
 
 /// Principal axes of the surface (area-uniform samples), columns sorted by decreasing spread,
-/// right-handed. Deterministic (fixed seed).
-fn principal_axes(mesh: &Mesh) -> Matrix3<f64> {
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
-    let pts = mesh.sample_surface(4000, &mut rng);
+/// right-handed.
+fn principal_axes(pts: &[Point3<f64>]) -> Matrix3<f64> {
     let n = pts.len().max(1) as f64;
     let mean = pts.iter().fold(Vector3::zeros(), |a, p| a + p.coords) / n;
     let cov = pts.iter().fold(Matrix3::zeros(), |a, p| {
@@ -236,6 +247,18 @@ fn principal_axes(mesh: &Mesh) -> Matrix3<f64> {
     let eig = SymmetricEigen::new(cov);
     let mut order = [0usize, 1, 2];
     order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
+    let l = order.map(|i| eig.eigenvalues[i]);
+    let degenerate = (l[0] - l[1]) <= PCA_DEGENERATE_SHARE * l[0] || (l[1] - l[2]) <= PCA_DEGENERATE_SHARE * l[1];
+    if degenerate {
+        // two spreads (nearly) equal: their axes are arbitrary (a cylinder, a cube); take the
+        // object's own axes, ordered by spread
+        let mut idx = [0usize, 1, 2];
+        idx.sort_by(|&a, &b| cov[(b, b)].total_cmp(&cov[(a, a)]));
+        let mut axes = Matrix3::from_columns(&idx.map(|i| Vector3::ith(i, 1.0)));
+        let z = axes.column(0).cross(&axes.column(1));
+        axes.set_column(2, &z);
+        return axes;
+    }
     let mut axes = Matrix3::zeros();
     for (k, &i) in order.iter().enumerate() {
         let mut v: Vector3<f64> = eig.eigenvectors.column(i).into();
@@ -269,6 +292,12 @@ mod tests {
         // largest spread first: z (0.21), then x (0.16), then y
         let a = o.principal_axes();
         assert!(a.column(0).z.abs() > 0.99 && a.column(1).x.abs() > 0.99, "{a}");
+        // a cube's spreads are all equal: its own axes, not an arbitrary PCA frame
+        let cube = GraspObject::new(&mesh::builtin_box([0.1, 0.1, 0.1], [[1, 2, 3], [4, 5, 6]])).unwrap();
+        let a = cube.principal_axes();
+        for k in 0..3 {
+            assert!(a.column(k).iter().any(|v| (v.abs() - 1.0).abs() < 1e-12), "{a}");
+        }
         // cached: same Arc
         let again = GraspObject::new(&m).unwrap();
         assert!(Arc::ptr_eq(&o.0, &again.0));
