@@ -1,0 +1,117 @@
+//! `pregrasp eval`: the command line of the evaluation.
+
+use super::report::Mode;
+use super::run::{DecideConfig, EvalConfig, run_all};
+use crate::grasp::Gripper;
+use crate::tracker::{CodebookConfig, TrackerConfig};
+use std::path::PathBuf;
+
+/// Options of `pregrasp eval`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// A sequence, or a folder of sequences (`shared/design/multiview-bop.md`).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// `multi`: every camera; `single`: the reference (robot) camera alone, 110 particles.
+    #[arg(long, value_enum, default_value = "multi")]
+    pub mode: Mode,
+    /// Folder of meshes `<object name>.ply` used instead of the paths in rig.json.
+    #[arg(long)]
+    pub models: Option<PathBuf>,
+    /// Output folder: results.json, table.md, frames.json, plots/.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Codebook cache folder (default: <out>/cache).
+    #[arg(long)]
+    pub cache: Option<PathBuf>,
+    /// Rotation grid step in degrees (5 = the paper's 37 x 72 x 72 grid).
+    #[arg(long, default_value_t = 5)]
+    pub grid_step_deg: u32,
+    /// Decide grasp or observe at every step and report its calibration.
+    #[arg(long)]
+    pub decide: bool,
+    /// Gripper JSON for --decide (default: the built-in parallel-jaw gripper).
+    #[arg(long)]
+    pub gripper: Option<PathBuf>,
+    /// Pose samples per decision.
+    #[arg(long, default_value_t = 1000)]
+    pub samples: usize,
+    /// Decision threshold on the lower bound of p_success.
+    #[arg(long, default_value_t = 0.9)]
+    pub threshold: f64,
+    /// Evaluate at most this many steps per sequence.
+    #[arg(long)]
+    pub max_frames: Option<usize>,
+    /// Feed every n-th time step only (the same approach at a lower frame rate).
+    #[arg(long, default_value_t = 1)]
+    pub frame_stride: usize,
+    /// Seed of the stand-in detections.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Track only each sequence's target object (the Table I rows), not every object.
+    #[arg(long)]
+    pub only_target: bool,
+    /// An earlier run's output folder whose traces the plots show dashed (e.g. single-view).
+    #[arg(long)]
+    pub compare: Option<PathBuf>,
+}
+
+impl Args {
+    /// The run's configuration.
+    pub fn config(&self) -> anyhow::Result<EvalConfig> {
+        let decide = if self.decide {
+            let gripper = match &self.gripper {
+                Some(p) => Gripper::from_file(p)?,
+                None => Gripper::default_parallel_jaw(),
+            };
+            let mut d = DecideConfig::new(gripper);
+            d.n_samples = self.samples;
+            d.threshold = self.threshold;
+            Some(d)
+        } else {
+            None
+        };
+        Ok(EvalConfig {
+            mode: self.mode,
+            models_dir: self.models.clone(),
+            cache_dir: Some(self.cache.clone().unwrap_or_else(|| self.out.join("cache"))),
+            grid_step_deg: self.grid_step_deg,
+            codebook: CodebookConfig::default(),
+            tracker: TrackerConfig::default(),
+            detection_seed: self.seed,
+            max_frames: self.max_frames,
+            frame_stride: self.frame_stride,
+            decide,
+            only_target: self.only_target,
+        })
+    }
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let cfg = args.config()?;
+    let results = run_all(&args.data, &args.out, &cfg, args.compare.as_deref())?;
+    let m = &results.mean;
+    let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.4}"));
+    println!(
+        "{} sequences, mode {}: mean translation error {} m, orientation error {} deg, std {} m, loglik {}, ADD-S AUC {}, coverage {}",
+        results.sequences.len(),
+        results.mode.as_str(),
+        f(m.translation_error_m),
+        f(m.orientation_error_deg),
+        f(m.translation_std_m),
+        f(m.gt_orientation_loglik),
+        f(m.add_s_auc),
+        f(m.coverage)
+    );
+    if let Some(d) = &results.decision {
+        println!(
+            "decision: grasp rate {:.3}, false grasp rate {}, ECE {:.4} over {} frames",
+            d.grasp_rate,
+            f(d.false_grasp_rate),
+            d.ece,
+            d.frames
+        );
+    }
+    println!("wrote {}", args.out.join("results.json").display());
+    Ok(())
+}

@@ -1,0 +1,33 @@
+//! `pregrasp eval`: run the tracker over generated or recorded sequences and report the
+//! paper's metrics (Table I), plots over time (Fig. 5) and, with `--decide`, the calibration
+//! of the grasp decision.
+//!
+//! Files: `metrics.rs` (per-frame errors, symmetries, ADD/ADD-S, AUC), `truth.rs` (ground
+//! truth in the reference frame, for scoring only), `report.rs` (`results.json` and the
+//! Markdown table beside the paper's), `plot.rs` (SVG plots over time), `calibration.rs`
+//! (reliability of the grasp decision), `run.rs` (the runner), `cli.rs` (`pregrasp eval`).
+
+pub mod calibration;
+pub mod cli;
+pub mod metrics;
+pub mod plot;
+pub mod report;
+pub mod run;
+pub mod truth;
+
+/// Errors of the evaluation.
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    #[error("data set: {0}")]
+    Data(String),
+    #[error("configuration: {0}")]
+    Config(String),
+    #[error("tracker: {0}")]
+    Tracker(String),
+    #[error("renderer: {0}")]
+    Render(String),
+    #[error("grasp decision: {0}")]
+    Grasp(String),
+    #[error("output: {0}")]
+    Io(String),
+}

@@ -1,0 +1,598 @@
+//! The evaluation runner: the tracker over every sequence of a data set, scored against the
+//! ground truth after each step.
+//!
+//! What the filter sees (`shared/design/multiview-bop.md`, "What the tracker may read"): each
+//! camera's depth, colour and intrinsics, the stationary cameras' poses from
+//! `scene_camera.json` (calibration), the robot's motion from `odometry.json` only, and the
+//! stand-in detections of [`Sequence::detections`] (the tracker uses them only to start a
+//! track and to restart one it declared lost). `scene_gt.json`, the masks and the robot
+//! camera's `cam_R_w2c` are read only by the scoring after the step.
+//!
+//! A time step is a frame id (frames of different cameras that share an id belong to one
+//! step, each with its own `stamp_ns`); steps run in the order of the reference camera's
+//! stamps (frame ids where it has none). In the single-view mode only the reference camera is
+//! fed, with all particles from it.
+
+use super::EvalError;
+use super::calibration::DecisionOutcome;
+use super::metrics::{self, ModelPoints, Symmetries};
+use super::plot::{Series, sequence_svg};
+use super::report::{FrameErrors, FrameMetrics, Mode, ObjectTrace, Results, SequenceSummary};
+use super::truth::{associate, objects_in_reference, reference_from_world};
+use crate::dataset::{Mount, Sequence};
+use crate::geometry::{Pose, RotationGrid};
+use crate::grasp::{self, DecisionQuery, GraspObject, Gripper, SupportPlane, Verdict};
+use crate::mesh::Mesh;
+use crate::render::Renderer;
+use crate::tracker::{
+    CameraFrame, CameraMount, Codebook, CodebookConfig, RobotOdometry, TrackStatus, Tracker, TrackerConfig,
+};
+use rand::SeedableRng;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+/// Everything a run needs besides the data.
+#[derive(Debug, Clone)]
+pub struct EvalConfig {
+    pub mode: Mode,
+    /// Meshes `<name>.ply` (or `.obj`) by object name, instead of the paths in `rig.json`.
+    pub models_dir: Option<PathBuf>,
+    /// Codebook cache folder.
+    pub cache_dir: Option<PathBuf>,
+    pub grid_step_deg: u32,
+    pub codebook: CodebookConfig,
+    /// The tracker's settings; the particle counts are set per mode by [`tracker_config`].
+    pub tracker: TrackerConfig,
+    /// Seed of the stand-in detections (their jitter and misses).
+    pub detection_seed: u64,
+    /// Evaluate at most this many steps per sequence.
+    pub max_frames: Option<usize>,
+    /// Feed every n-th time step only (1 = all): the same approach at a lower frame rate.
+    pub frame_stride: usize,
+    /// Decide grasp or observe at every step (issue 4's calibration).
+    pub decide: Option<DecideConfig>,
+    /// Track only each sequence's target (all objects in a sequence without one): the Table I
+    /// rows at a fraction of the cost.
+    pub only_target: bool,
+}
+
+/// Settings of the per-frame grasp decision.
+#[derive(Debug, Clone)]
+pub struct DecideConfig {
+    pub gripper: Gripper,
+    pub n_samples: usize,
+    pub threshold: f64,
+    pub seed: u64,
+}
+
+impl DecideConfig {
+    pub fn new(gripper: Gripper) -> Self {
+        Self {
+            gripper,
+            n_samples: 1000,
+            threshold: 0.9,
+            seed: 5,
+        }
+    }
+}
+
+/// The paper's particle counts: 30 per external camera and 50 from the robot camera in the
+/// multi-view mode; 110 from the robot camera alone in the single-view baseline.
+pub fn tracker_config(base: &TrackerConfig, mode: Mode) -> TrackerConfig {
+    let mut c = base.clone();
+    match mode {
+        Mode::Multi => {
+            c.particles_per_external_camera = 30;
+            c.particles_from_robot_camera = 50;
+            c.only_reference_camera = false;
+        }
+        Mode::Single => {
+            // The reference camera alone: 110 particles whether it rides on the robot or (a
+            // rig without a robot camera) stands still.
+            c.particles_per_external_camera = 110;
+            c.particles_from_robot_camera = 110;
+            c.only_reference_camera = true;
+        }
+    }
+    c
+}
+
+/// What one object model brings to the evaluation.
+struct Model {
+    mesh: Mesh,
+    codebook: Arc<Codebook>,
+    points: ModelPoints,
+    symmetries: Symmetries,
+    grasp_object: Option<GraspObject>,
+}
+
+/// Object models loaded once per run, keyed by name and mesh content.
+#[derive(Default)]
+pub struct ModelStore {
+    models: BTreeMap<(String, String), Arc<Model>>,
+    /// Seconds spent building or loading codebooks, per object.
+    pub codebook_s: BTreeMap<String, f64>,
+}
+
+impl ModelStore {
+    fn get(&mut self, renderer: &Renderer, name: &str, mesh: Mesh, cfg: &EvalConfig) -> Result<Arc<Model>, EvalError> {
+        let key = (name.to_string(), mesh.content_hash());
+        if let Some(m) = self.models.get(&key) {
+            return Ok(m.clone());
+        }
+        let grid = RotationGrid::new(cfg.grid_step_deg).map_err(|e| EvalError::Config(e.to_string()))?;
+        let t0 = Instant::now();
+        let codebook = Codebook::load_or_build(renderer, &mesh, grid, &cfg.codebook, cfg.cache_dir.as_deref())
+            .map_err(|e| EvalError::Tracker(e.to_string()))?;
+        *self.codebook_s.entry(name.to_string()).or_default() += t0.elapsed().as_secs_f64();
+        let points = ModelPoints::from_mesh(&mesh, metrics::DEFAULT_MODEL_POINTS)
+            .ok_or_else(|| EvalError::Config(format!("mesh of {name} has no usable triangles")))?;
+        let symmetries = Symmetries::for_object(name, &mesh);
+        let grasp_object = if cfg.decide.is_some() {
+            Some(GraspObject::new(&mesh).map_err(|e| EvalError::Grasp(e.to_string()))?)
+        } else {
+            None
+        };
+        let m = Arc::new(Model {
+            mesh,
+            codebook: Arc::new(codebook),
+            points,
+            symmetries,
+            grasp_object,
+        });
+        self.models.insert(key, m.clone());
+        Ok(m)
+    }
+}
+
+/// The result of one sequence.
+#[derive(Debug, Clone)]
+pub struct SequenceOutcome {
+    pub summary: SequenceSummary,
+    pub traces: Vec<ObjectTrace>,
+    pub decisions: Vec<DecisionOutcome>,
+    /// The tracker's estimates after the last step, per live track: (object name, estimate).
+    pub final_estimates: Vec<(String, crate::tracker::Estimate)>,
+}
+
+/// The mesh of an object: `models_dir/<name>.ply` when given and present, else the rig's.
+fn load_mesh(seq: &Sequence, name: &str, models_dir: Option<&Path>) -> Result<Mesh, EvalError> {
+    if let Some(dir) = models_dir {
+        for ext in ["ply", "obj"] {
+            let p = dir.join(format!("{name}.{ext}"));
+            if p.is_file() {
+                return Mesh::load(&p).map_err(|e| EvalError::Data(format!("{}: {e}", p.display())));
+            }
+        }
+    }
+    seq.load_mesh(name).map_err(|e| EvalError::Data(e.to_string()))
+}
+
+/// The cameras the filter is fed in a mode: all of the rig's, or the reference camera alone.
+pub fn cameras_for_mode(seq: &Sequence, mode: Mode) -> Vec<String> {
+    match mode {
+        Mode::Multi => seq.rig.cameras.keys().cloned().collect(),
+        Mode::Single => vec![seq.rig.reference_camera.clone()],
+    }
+}
+
+/// How each fed camera is mounted, as the tracker may know it: a stationary camera's pose is
+/// its calibration (`cam_R_w2c` of its first frame; identity where it has none), a robot
+/// camera's `base_from_camera` comes from the odometry.
+fn mounts(seq: &Sequence, cameras: &[String]) -> Result<BTreeMap<String, CameraMount>, EvalError> {
+    let mut out = BTreeMap::new();
+    for name in cameras {
+        let rig_cam = seq
+            .rig
+            .cameras
+            .get(name)
+            .ok_or_else(|| EvalError::Data(format!("camera {name} not in rig.json")))?;
+        let mount = match rig_cam.mount {
+            Mount::Stationary => {
+                let camera_from_world = seq
+                    .cameras
+                    .get(name)
+                    .and_then(|c| c.frames.values().find_map(|f| f.camera_from_world))
+                    .unwrap_or_else(Pose::identity);
+                CameraMount::Stationary {
+                    world_from_camera: camera_from_world.inverse(),
+                }
+            }
+            Mount::Robot => {
+                let base_from_camera = seq
+                    .odometry
+                    .as_ref()
+                    .and_then(|o| o.values().next())
+                    .map(|s| s.base_from_camera)
+                    .ok_or_else(|| EvalError::Data(format!("robot camera {name} without odometry")))?;
+                CameraMount::Robot { base_from_camera }
+            }
+        };
+        out.insert(name.clone(), mount);
+    }
+    Ok(out)
+}
+
+/// Time steps in order: frame ids sorted by the reference camera's stamp (else the earliest
+/// stamp of any fed camera).
+fn steps(seq: &Sequence, cameras: &[String]) -> Vec<(u32, i64)> {
+    let mut ids: Vec<(u32, i64)> = seq
+        .frame_ids()
+        .into_iter()
+        .filter_map(|id| {
+            let reference = seq
+                .cameras
+                .get(&seq.rig.reference_camera)
+                .and_then(|c| c.frames.get(&id))
+                .map(|f| f.stamp_ns);
+            let any = cameras
+                .iter()
+                .filter_map(|c| seq.cameras.get(c).and_then(|s| s.frames.get(&id)).map(|f| f.stamp_ns))
+                .min();
+            // A step that no fed camera captured is no step of this mode.
+            any.map(|a| (id, reference.unwrap_or(a)))
+        })
+        .collect();
+    ids.sort_by_key(|&(id, stamp)| (stamp, id));
+    ids
+}
+
+/// The frames of one step, each camera's own capture.
+fn frames_of_step(
+    seq: &Sequence,
+    cameras: &[String],
+    frame_id: u32,
+    known: &BTreeMap<String, Arc<Model>>,
+    seed: u64,
+) -> Result<Vec<CameraFrame>, EvalError> {
+    let mut frames = Vec::new();
+    for cam in cameras {
+        let Some(meta) = seq.cameras.get(cam).and_then(|c| c.frames.get(&frame_id)) else {
+            continue;
+        };
+        let data = |e: crate::dataset::DatasetError| EvalError::Data(e.to_string());
+        let depth = seq.load_depth(cam, frame_id).map_err(data)?;
+        let color = seq.load_rgb(cam, frame_id).map_err(data)?;
+        let detections = seq
+            .detections(cam, frame_id, seed)
+            .into_iter()
+            .filter(|d| known.contains_key(&d.object))
+            .collect();
+        frames.push(CameraFrame {
+            camera: cam.clone(),
+            stamp_ns: meta.stamp_ns,
+            intrinsics: meta.intrinsics,
+            depth,
+            color,
+            detections,
+        });
+    }
+    frames.sort_by_key(|f| f.stamp_ns);
+    Ok(frames)
+}
+
+/// Runs the tracker over one sequence and scores every step.
+pub fn evaluate_sequence(
+    seq: &Sequence,
+    renderer: &Renderer,
+    cfg: &EvalConfig,
+    store: &mut ModelStore,
+) -> Result<SequenceOutcome, EvalError> {
+    let t_start = Instant::now();
+    let name = seq
+        .root
+        .file_name()
+        .map(|n| n.to_string_lossy().to_string())
+        .unwrap_or_else(|| "sequence".into());
+    let cameras = cameras_for_mode(seq, cfg.mode);
+    let reference = seq.rig.reference_camera.clone();
+    let robot_fed = seq
+        .rig
+        .robot_camera()
+        .filter(|r| cameras.iter().any(|c| c == r))
+        .map(str::to_string);
+
+    let mut models: BTreeMap<String, Arc<Model>> = BTreeMap::new();
+    for obj in &seq.rig.objects {
+        if cfg.only_target && seq.rig.target.as_deref().is_some_and(|t| t != obj.name) {
+            continue;
+        }
+        let mesh = load_mesh(seq, &obj.name, cfg.models_dir.as_deref())?;
+        models.insert(obj.name.clone(), store.get(renderer, &obj.name, mesh, cfg)?);
+    }
+    let mut tracker = Tracker::new(
+        tracker_config(&cfg.tracker, cfg.mode),
+        mounts(seq, &cameras)?,
+        reference.clone(),
+    );
+    for (n, m) in &models {
+        tracker.add_object_model(n, m.mesh.clone(), m.codebook.clone());
+    }
+
+    let table_row = |object: &str| seq.rig.target.as_deref().is_none_or(|t| t == object);
+    let mut traces: BTreeMap<(String, usize), ObjectTrace> = BTreeMap::new();
+    let mut decisions = Vec::new();
+    let mut decide_rng = rand_chacha::ChaCha8Rng::seed_from_u64(cfg.decide.as_ref().map_or(0, |d| d.seed));
+    let plan: Vec<(u32, i64)> = steps(seq, &cameras)
+        .into_iter()
+        .step_by(cfg.frame_stride.max(1))
+        .collect();
+    let plan = &plan[..cfg.max_frames.map_or(plan.len(), |m| m.min(plan.len()))];
+    for &(frame_id, stamp_ns) in plan {
+        let frames = frames_of_step(seq, &cameras, frame_id, &models, cfg.detection_seed)?;
+        let odometry = robot_fed
+            .as_ref()
+            .and_then(|_| seq.odometry.as_ref()?.get(&frame_id))
+            .map(|o| RobotOdometry {
+                stamp_ns: o.stamp_ns,
+                odom_from_base: o.odom_from_base,
+                world_from_odom: o.world_from_odom,
+                base_from_camera: o.base_from_camera,
+            });
+        tracker
+            .step(&frames, odometry.as_ref())
+            .map_err(|e| EvalError::Tracker(e.to_string()))?;
+
+        // --- scoring: ground truth from here on, never fed back ---
+        let truths = objects_in_reference(seq, frame_id);
+        let mut by_object: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
+        for (j, t) in truths.iter().enumerate() {
+            if models.contains_key(&t.name) {
+                by_object.entry(t.name.as_str()).or_default().push(j);
+            }
+        }
+        for (object, truth_idx) in by_object {
+            let model = &models[object];
+            let live: Vec<(u64, crate::tracker::Estimate)> = tracker
+                .tracks()
+                .iter()
+                .filter(|t| t.object == object && t.status != TrackStatus::Lost)
+                .filter_map(|t| tracker.estimate(t.id).map(|e| (t.id, e)))
+                .collect();
+            let est_pos: Vec<[f64; 3]> = live
+                .iter()
+                .map(|(_, e)| e.reference_from_object.translation.vector.into())
+                .collect();
+            let truth_pos: Vec<[f64; 3]> = truth_idx
+                .iter()
+                .map(|&j| truths[j].reference_from_object.translation.vector.into())
+                .collect();
+            let assoc = associate(&est_pos, &truth_pos);
+            for (k, &j) in truth_idx.iter().enumerate() {
+                let truth = &truths[j];
+                let errors = assoc[k].map(|i| {
+                    let (track_id, est) = &live[i];
+                    let e = &est.reference_from_object;
+                    let t = &truth.reference_from_object;
+                    FrameErrors {
+                        translation_error_m: metrics::translation_error_m(e, t),
+                        translation_error_l1_m: metrics::translation_error_l1_m(e, t),
+                        orientation_error_deg: metrics::orientation_error_l1_deg(&e.rotation, &t.rotation),
+                        geodesic_error_deg: metrics::geodesic_error_deg(&e.rotation, &t.rotation),
+                        symmetric_error_deg: model.symmetries.error_deg(&e.rotation, &t.rotation),
+                        translation_std_m: est.translation_std_m,
+                        gt_orientation_loglik: tracker.orientation_loglik(*track_id, &t.rotation),
+                        add_m: model.points.add_m(e, t),
+                        add_s_m: model.points.add_s_m(e, t),
+                        rotation_entropy: est.rotation_entropy,
+                    }
+                });
+                if let (Some(dc), Some(i), true) = (&cfg.decide, assoc[k], table_row(object)) {
+                    let (track_id, est) = &live[i];
+                    if let Some(o) = decide_once(
+                        seq,
+                        &tracker,
+                        model,
+                        dc,
+                        *track_id,
+                        est,
+                        truth,
+                        frame_id,
+                        &mut decide_rng,
+                    )? {
+                        decisions.push(o);
+                    }
+                }
+                let key = (truth.name.clone(), truth.instance);
+                traces
+                    .entry(key)
+                    .or_insert_with(|| ObjectTrace {
+                        sequence: name.clone(),
+                        object: truth.name.clone(),
+                        table_row: table_row(&truth.name),
+                        frames: Vec::new(),
+                    })
+                    .frames
+                    .push(FrameMetrics {
+                        frame_id,
+                        stamp_ns,
+                        errors,
+                    });
+            }
+        }
+    }
+    let final_estimates = tracker
+        .tracks()
+        .iter()
+        .filter(|t| t.status != TrackStatus::Lost)
+        .filter_map(|t| tracker.estimate(t.id).map(|e| (t.object.clone(), e)))
+        .collect();
+    let summary = SequenceSummary {
+        name,
+        target: seq.rig.target.clone(),
+        frames: plan.len(),
+        objects: models.keys().cloned().collect(),
+        wall_s: t_start.elapsed().as_secs_f64(),
+    };
+    Ok(SequenceOutcome {
+        summary,
+        traces: traces.into_values().collect(),
+        decisions,
+        final_estimates,
+    })
+}
+
+/// One grasp decision on the tracked distribution and its outcome on the true pose. The
+/// support plane is moved into the reference frame with the tracker's *own* estimate of
+/// `world_from_reference`; the truth (object pose and true reference pose) only scores.
+#[allow(clippy::too_many_arguments)]
+fn decide_once(
+    seq: &Sequence,
+    tracker: &Tracker,
+    model: &Model,
+    dc: &DecideConfig,
+    track_id: u64,
+    est: &crate::tracker::Estimate,
+    truth: &super::truth::TrueObject,
+    frame_id: u32,
+    rng: &mut rand_chacha::ChaCha8Rng,
+) -> Result<Option<DecisionOutcome>, EvalError> {
+    let Some(object) = &model.grasp_object else {
+        return Ok(None);
+    };
+    let Some(samples) = tracker.sample_poses(track_id, dc.n_samples, rng) else {
+        return Ok(None);
+    };
+    let plane_world = seq.rig.support_plane.map(|p| SupportPlane {
+        normal: p.normal,
+        point_m: p.point_m,
+    });
+    let plane_estimated = plane_world.map(|p| p.transformed(&tracker.world_from_reference().inverse()));
+    let query = DecisionQuery {
+        n_samples: dc.n_samples,
+        threshold: dc.threshold,
+        grasp: None,
+        support_plane: plane_estimated,
+    };
+    let decision = match grasp::decide(object, &dc.gripper, &est.reference_from_object, &samples, &query) {
+        Ok(d) => d,
+        // No grasp fits (e.g. the object is too big for the stroke): no decision to score.
+        Err(grasp::GraspError::NoCandidate(_)) => return Ok(None),
+        Err(e) => return Err(EvalError::Grasp(e.to_string())),
+    };
+    let plane_true = match (plane_world, reference_from_world(seq, frame_id)) {
+        (Some(p), Some(reference_from_world)) => Some(p.transformed(&reference_from_world)),
+        (Some(_), None) => return Ok(None),
+        (None, _) => None,
+    };
+    let success = grasp::success_on_pose(
+        object,
+        &dc.gripper,
+        &decision.reference_from_gripper,
+        &truth.reference_from_object,
+        plane_true.as_ref(),
+    )
+    .map_err(|e| EvalError::Grasp(e.to_string()))?;
+    Ok(Some(DecisionOutcome {
+        p_success: decision.p_success,
+        grasp: decision.decision == Verdict::Grasp,
+        success,
+    }))
+}
+
+/// Runs [`evaluate_sequence`] over every sequence under `data` and writes into `out`:
+/// `results.json`, `table.md` (beside the paper's Table I), `frames.json` (every object's
+/// per-step metrics) and `plots/<sequence>.svg`. With `compare`, the plots also show the
+/// traces of an earlier run (its `frames.json`) dashed, e.g. the single-view baseline.
+pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>) -> Result<Results, EvalError> {
+    let io = |p: &Path, e: std::io::Error| EvalError::Io(format!("{}: {e}", p.display()));
+    std::fs::create_dir_all(out.join("plots")).map_err(|e| io(out, e))?;
+    let seq_dirs = crate::dataset::find_sequences(data).map_err(|e| EvalError::Data(e.to_string()))?;
+    let renderer = Renderer::new().map_err(|e| EvalError::Render(e.to_string()))?;
+    let mut store = ModelStore::default();
+    let mut traces = Vec::new();
+    let mut summaries = Vec::new();
+    let mut decisions = Vec::new();
+    let compare_traces: Vec<ObjectTrace> = match compare {
+        Some(dir) => {
+            let p = dir.join("frames.json");
+            let text = std::fs::read_to_string(&p).map_err(|e| io(&p, e))?;
+            serde_json::from_str(&text).map_err(|e| EvalError::Io(format!("{}: {e}", p.display())))?
+        }
+        None => Vec::new(),
+    };
+    for dir in &seq_dirs {
+        let seq = Sequence::open(dir).map_err(|e| EvalError::Data(e.to_string()))?;
+        tracing::info!(sequence = %dir.display(), mode = cfg.mode.as_str(), "evaluating");
+        let outcome = evaluate_sequence(&seq, &renderer, cfg, &mut store)?;
+        let t0 = outcome
+            .traces
+            .iter()
+            .chain(compare_traces.iter().filter(|t| t.sequence == outcome.summary.name))
+            .filter_map(|t| t.frames.first().map(|f| f.stamp_ns))
+            .min()
+            .unwrap_or(0);
+        let mut series: Vec<Series> = outcome
+            .traces
+            .iter()
+            .map(|t| Series::from_trace(t, &format!("{} {}", t.object, cfg.mode.as_str()), false, t0))
+            .collect();
+        for t in compare_traces.iter().filter(|t| t.sequence == outcome.summary.name) {
+            series.push(Series::from_trace(t, &format!("{} (compared)", t.object), true, t0));
+        }
+        let svg = sequence_svg(
+            &format!("{} ({}-view)", outcome.summary.name, cfg.mode.as_str()),
+            &series,
+        );
+        let svg_path = out.join("plots").join(format!("{}.svg", outcome.summary.name));
+        std::fs::write(&svg_path, svg).map_err(|e| io(&svg_path, e))?;
+        tracing::info!(
+            sequence = %outcome.summary.name,
+            frames = outcome.summary.frames,
+            wall_s = outcome.summary.wall_s,
+            "done"
+        );
+        traces.extend(outcome.traces);
+        summaries.push(outcome.summary);
+        decisions.extend(outcome.decisions);
+    }
+    let mut results = Results::from_traces(cfg.mode, &traces, summaries);
+    if let Some(dc) = &cfg.decide {
+        results.decision = super::calibration::summarise(&decisions, dc.threshold);
+    }
+    let settings = &mut results.settings;
+    settings.insert("grid_step_deg".into(), cfg.grid_step_deg.into());
+    settings.insert("detection_seed".into(), cfg.detection_seed.into());
+    settings.insert("only_target".into(), cfg.only_target.into());
+    settings.insert("frame_stride".into(), cfg.frame_stride.into());
+    if let Some(m) = cfg.max_frames {
+        settings.insert("max_frames".into(), m.into());
+    }
+    settings.insert("renderer".into(), renderer.adapter_name().into());
+    let tc = tracker_config(&cfg.tracker, cfg.mode);
+    settings.insert(
+        "particles_per_external_camera".into(),
+        tc.particles_per_external_camera.into(),
+    );
+    settings.insert(
+        "particles_from_robot_camera".into(),
+        tc.particles_from_robot_camera.into(),
+    );
+    settings.insert(
+        "codebook_s".into(),
+        serde_json::to_value(&store.codebook_s).unwrap_or_default(),
+    );
+    let write_json = |name: &str, v: &dyn erased::Json| -> Result<(), EvalError> {
+        let p = out.join(name);
+        std::fs::write(&p, v.to_json()).map_err(|e| io(&p, e))
+    };
+    write_json("results.json", &results)?;
+    write_json("frames.json", &traces)?;
+    let md = out.join("table.md");
+    std::fs::write(&md, results.markdown()).map_err(|e| io(&md, e))?;
+    Ok(results)
+}
+
+mod erased {
+    /// Pretty JSON of anything serialisable, behind a trait object.
+    pub trait Json {
+        fn to_json(&self) -> String;
+    }
+    impl<T: serde::Serialize> Json for T {
+        fn to_json(&self) -> String {
+            serde_json::to_string_pretty(self).unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
+        }
+    }
+}
