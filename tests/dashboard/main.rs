@@ -1,0 +1,200 @@
+//! Browser tests of the live dashboard (`static/`): Debian's Chromium, headless, driven over
+//! the DevTools protocol. The page exposes hooks on `<body>` (`data-connection`,
+//! `data-updates`, `data-tracks`, `data-decision`, `data-particles-drawn`, `data-plot-points`,
+//! `data-connects`) so the test can assert that real drawing happened.
+//!
+//! Chromium missing is a test failure with a clear message, never a silent skip.
+
+mod cdp;
+mod mock;
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use cdp::{Browser, Page};
+
+const WIDTH_PX: u32 = 1440;
+const HEIGHT_PX: u32 = 900;
+/// Generous: the first page load in a cold Chromium on a loaded 2-core machine is slow.
+const WAIT: Duration = Duration::from_secs(60);
+/// All of static/ together must stay small (no frameworks): a budget, not a measurement.
+const PAGE_WEIGHT_BUDGET_BYTES: u64 = 200 * 1024;
+
+fn target_dir() -> PathBuf {
+    // CARGO_TARGET_TMPDIR is <target>/tmp.
+    Path::new(env!("CARGO_TARGET_TMPDIR"))
+        .parent()
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|| PathBuf::from("target"))
+}
+
+/// Bytes of every file served from static/ (what a browser downloads for one page view).
+fn page_weight_bytes() -> u64 {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("static");
+    std::fs::read_dir(&dir)
+        .expect("static/ exists")
+        .filter_map(Result::ok)
+        .filter_map(|e| e.metadata().ok())
+        .filter(|m| m.is_file())
+        .map(|m| m.len())
+        .sum()
+}
+
+async fn body_number(page: &mut Page, key: &str) -> f64 {
+    let v = page
+        .eval(&format!("Number(document.body.dataset.{key} ?? 0)"))
+        .await
+        .expect("evaluate hook");
+    v.as_f64().unwrap_or(0.0)
+}
+
+/// Events handled by the page per second, counted over `window`.
+async fn measure_update_rate_hz(page: &mut Page, window: Duration) -> f64 {
+    let before = body_number(page, "updates").await;
+    let t0 = Instant::now();
+    tokio::time::sleep(window).await;
+    let after = body_number(page, "updates").await;
+    (after - before) / t0.elapsed().as_secs_f64()
+}
+
+/// What every run checks, against the mock or the real service: connected, an object tracked
+/// with a decision shown, particles drawn in 3D, a plot with data, no script errors.
+async fn check_live_dashboard(page: &mut Page, base_url: &str) {
+    page.navigate(&format!("{base_url}/")).await.expect("open dashboard");
+    page.wait_for(
+        "document.body.dataset.connection === 'live'",
+        WAIT,
+        "the event stream to connect",
+    )
+    .await
+    .expect("connected");
+    page.wait_for("Number(document.body.dataset.tracks) >= 1", WAIT, "a tracked object")
+        .await
+        .expect("tracked object");
+    let decision = page
+        .wait_for("document.body.dataset.decision", WAIT, "a decision")
+        .await
+        .expect("decision shown");
+    let decision = decision.as_str().unwrap_or_default().to_string();
+    assert!(
+        decision == "grasp" || decision == "observe",
+        "decision hook shows {decision:?}"
+    );
+    let listed = page
+        .eval("document.querySelector('.track .verdict').textContent")
+        .await
+        .expect("verdict text");
+    assert!(
+        matches!(listed.as_str(), Some("grasp" | "observe")),
+        "the track list shows the verdict, got {listed}"
+    );
+    page.wait_for(
+        "Number(document.body.dataset.particlesDrawn) > 0",
+        WAIT,
+        "particles drawn in the 3D view",
+    )
+    .await
+    .expect("particles drawn");
+    page.wait_for(
+        "Number(document.getElementById('plot-std').dataset.plotPoints) >= 2",
+        WAIT,
+        "the translation-std plot to have data",
+    )
+    .await
+    .expect("plot has data");
+    // The 3D canvas really has non-background pixels where drawing happened.
+    let lit = page
+        .eval(
+            "(() => { const c = document.getElementById('view3d'); const gl = c.getContext('webgl');
+               const px = new Uint8Array(c.width * c.height * 4);
+               gl.readPixels(0, 0, c.width, c.height, gl.RGBA, gl.UNSIGNED_BYTE, px);
+               let n = 0; for (let i = 0; i < px.length; i += 4) if (px[i] > 60 || px[i+1] > 60 || px[i+2] > 60) n++;
+               return n; })()",
+        )
+        .await
+        .expect("read 3D pixels");
+    assert!(
+        lit.as_f64().unwrap_or(0.0) > 500.0,
+        "3D view drew almost nothing: {lit} lit pixels"
+    );
+    let errors = page
+        .eval("document.documentElement.dataset.jsErrors ?? ''")
+        .await
+        .expect("errors hook");
+    assert_eq!(errors.as_str(), Some(""), "script errors in the page");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn dashboard_shows_live_mock_service_and_reconnects() {
+    let server = mock::spawn().await;
+    let base_url = format!("http://{}", server.addr);
+    let mut browser = Browser::launch(WIDTH_PX, HEIGHT_PX).await.expect("launch Chromium");
+    let page = &mut browser.page;
+    check_live_dashboard(page, &base_url).await;
+
+    // Camera panels: an image arrived, detections and projected particles drawn over it.
+    page.wait_for(
+        "[...document.querySelectorAll('.camera-panel')].filter(f => f.dataset.imageLoaded === 'true' && Number(f.dataset.detections) > 0 && Number(f.dataset.particlesProjected) > 0).length >= 2",
+        WAIT,
+        "both camera panels with image, boxes and projected particles",
+    )
+    .await
+    .expect("camera panels");
+    // The mock publishes decisions that cross the threshold after ~3.5 s: the page follows.
+    page.wait_for(
+        "document.body.dataset.decision === 'grasp'",
+        WAIT,
+        "the decision to flip to grasp",
+    )
+    .await
+    .expect("decision updates live");
+    let truth_points = page
+        .eval("Number(document.getElementById('plot-terr').dataset.plotPoints)")
+        .await
+        .expect("truth plot");
+    assert!(
+        truth_points.as_f64().unwrap_or(0.0) >= 2.0,
+        "ground-truth error plot has data"
+    );
+
+    let rate = measure_update_rate_hz(page, Duration::from_secs(3)).await;
+    // The mock sends 6 events per 100 ms tick (60/s); the page must keep up with most of it.
+    assert!(rate > 20.0, "page handled only {rate:.1} events/s from the mock's 60/s");
+
+    // Drop the event stream: the page shows it and reconnects by itself.
+    let connects_before = body_number(page, "connects").await;
+    let client = reqwest::Client::new();
+    client
+        .post(format!("{base_url}/mock/drop"))
+        .send()
+        .await
+        .expect("drop streams");
+    page.wait_for(
+        &format!(
+            "Number(document.body.dataset.connects) > {connects_before} && document.body.dataset.connection === 'live'"
+        ),
+        WAIT,
+        "the page to reconnect after the stream dropped",
+    )
+    .await
+    .expect("reconnected");
+    let updates = body_number(page, "updates").await;
+    page.wait_for(
+        &format!("Number(document.body.dataset.updates) > {updates}"),
+        WAIT,
+        "events after reconnecting",
+    )
+    .await
+    .expect("events flow again");
+
+    let shot = target_dir().join("dashboard-screenshot-mock.png");
+    let bytes = page.screenshot(&shot).await.expect("screenshot");
+    let weight = page_weight_bytes();
+    eprintln!(
+        "dashboard (mock service): page weight {weight} B, update rate seen by the page {rate:.1} events/s, \
+         screenshot {} ({bytes} B)",
+        shot.display()
+    );
+    assert!(weight < PAGE_WEIGHT_BUDGET_BYTES, "static/ weighs {weight} B");
+    browser.close().await;
+}
