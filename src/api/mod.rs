@@ -31,6 +31,7 @@ use axum::extract::{DefaultBodyLimit, Request, State};
 use axum::http::Method;
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
+use crate::geometry;
 use error::ApiError;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -108,6 +109,8 @@ pub struct Shared {
     pub tracking: tracks::Tracking,
     /// The support plane (world frame) when one is known (demo, replay of a rig with one).
     pub support_plane: Mutex<Option<scene::PlaneDto>>,
+    /// Ground truth for display only (`world_from_object` and its stamp per object id).
+    pub truth: Mutex<BTreeMap<String, (i64, geometry::Pose)>>,
     /// The latest rates (updated once a second).
     pub stats: Mutex<events::Stats>,
     pub started: Instant,
@@ -145,6 +148,7 @@ impl AppState {
             metrics: Metrics::default(),
             tracking: tracks::Tracking::default(),
             support_plane: Mutex::new(None),
+            truth: Mutex::new(BTreeMap::new()),
             stats: Mutex::new(events::Stats::default()),
             started: Instant::now(),
         })))

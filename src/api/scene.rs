@@ -2,7 +2,8 @@
 
 use super::AppState;
 use super::cameras::MountDto;
-use super::types::{IntrinsicsDto, PoseDto};
+use super::error::ApiError;
+use super::types::{ApiJson, IntrinsicsDto, PoseDto};
 use axum::Json;
 use axum::extract::State;
 use serde::{Deserialize, Serialize};
@@ -46,7 +47,70 @@ pub struct Scene {
 }
 
 pub fn router() -> OpenApiRouter<AppState> {
-    OpenApiRouter::new().routes(routes!(get_scene))
+    OpenApiRouter::new()
+        .routes(routes!(get_scene))
+        .routes(routes!(put_support_plane))
+        .routes(routes!(post_truth))
+}
+
+/// Checks a plane (finite, non-zero normal) and normalises its normal.
+pub fn validate_plane(p: &PlaneDto) -> Result<PlaneDto, ApiError> {
+    let n = nalgebra::Vector3::from(p.normal);
+    let ok = p.normal.iter().chain(&p.point_m).all(|v| v.is_finite()) && n.norm() > 1e-9;
+    if !ok {
+        return Err(ApiError::Invalid("support plane needs finite numbers and a non-zero normal".into()));
+    }
+    let n = n.normalize();
+    Ok(PlaneDto {
+        normal: [n.x, n.y, n.z],
+        point_m: p.point_m,
+    })
+}
+
+#[utoipa::path(put, path = "/scene/support_plane", tag = "scene",
+    request_body(content = Option<PlaneDto>, description = "The table top in the world frame, or null"),
+    responses((status = 200, body = Option<PlaneDto>), (status = 422, body = super::error::Problem)))]
+async fn put_support_plane(
+    State(state): State<AppState>,
+    ApiJson(plane): ApiJson<Option<PlaneDto>>,
+) -> Result<Json<Option<PlaneDto>>, ApiError> {
+    let plane = plane.as_ref().map(validate_plane).transpose()?;
+    *state.support_plane.lock().unwrap_or_else(|p| p.into_inner()) = plane;
+    Ok(Json(plane))
+}
+
+/// One object's true pose.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct TruthObject {
+    /// Object id.
+    pub object: String,
+    pub world_from_object: PoseDto,
+}
+
+/// Ground truth for display (the demo, replays of generated data). The tracker never reads it;
+/// it only fills the `truth` field of track views so that the dashboard can plot errors.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct TruthIn {
+    pub stamp_ns: i64,
+    pub objects: Vec<TruthObject>,
+}
+
+#[utoipa::path(post, path = "/truth", tag = "scene",
+    request_body = TruthIn,
+    responses((status = 202, description = "Stored for display"), (status = 422, body = super::error::Problem)))]
+async fn post_truth(
+    State(state): State<AppState>,
+    ApiJson(t): ApiJson<TruthIn>,
+) -> Result<super::error::Accepted<serde_json::Value>, ApiError> {
+    let mut poses = Vec::with_capacity(t.objects.len());
+    for o in &t.objects {
+        poses.push((o.object.clone(), o.world_from_object.to_pose("world_from_object")?));
+    }
+    let mut truth = state.truth.lock().unwrap_or_else(|p| p.into_inner());
+    for (object, pose) in poses {
+        truth.insert(object, (t.stamp_ns, pose));
+    }
+    Ok(super::error::Accepted(serde_json::json!({"stamp_ns": t.stamp_ns})))
 }
 
 #[utoipa::path(get, path = "/scene", tag = "scene", responses((status = 200, body = Scene)))]
