@@ -4,6 +4,7 @@ use super::error::ApiError;
 use super::store::{Store, Table};
 use super::types::{ApiJson, check_id};
 use super::{AppState, Registry};
+use crate::grasp::Gripper;
 use axum::Json;
 use axum::extract::{Path, State};
 use serde::{Deserialize, Serialize};
@@ -24,6 +25,11 @@ pub(super) fn load(store: &Store, reg: &mut Registry) -> anyhow::Result<()> {
     for (id, g) in store.list::<serde_json::Value>(Table::Grippers)? {
         reg.grippers.insert(id, g);
     }
+    if !reg.grippers.contains_key(DEFAULT_GRIPPER) {
+        let g = serde_json::to_value(Gripper::default_parallel_jaw())?;
+        store.put(Table::Grippers, DEFAULT_GRIPPER, &g)?;
+        reg.grippers.insert(DEFAULT_GRIPPER.to_string(), g);
+    }
     Ok(())
 }
 
@@ -33,12 +39,26 @@ pub fn router() -> OpenApiRouter<AppState> {
         .routes(routes!(get_gripper, put_gripper, delete_gripper))
 }
 
-/// Checks a gripper document; returns it normalised.
+/// Id of the gripper every server has (the default parallel-jaw gripper).
+pub const DEFAULT_GRIPPER: &str = "default";
+
+/// Checks a gripper document (the fields of `crate::grasp::Gripper`, all required, nothing
+/// else) and its geometry; returns it normalised.
 pub fn validate(value: serde_json::Value) -> Result<serde_json::Value, ApiError> {
-    if !value.is_object() {
-        return Err(ApiError::Invalid("a gripper is a JSON object".into()));
-    }
-    Ok(value)
+    let g: Gripper = serde_json::from_value(value).map_err(|e| ApiError::Invalid(format!("gripper: {e}")))?;
+    g.validate().map_err(|e| ApiError::Invalid(e.to_string()))?;
+    serde_json::to_value(&g).map_err(ApiError::internal)
+}
+
+/// The gripper model of a registered id.
+pub fn gripper(state: &AppState, id: &str) -> Result<Gripper, ApiError> {
+    let v = state
+        .registry()
+        .grippers
+        .get(id)
+        .cloned()
+        .ok_or_else(|| ApiError::not_found("gripper", id))?;
+    serde_json::from_value(v).map_err(|e| ApiError::Internal(format!("stored gripper {id}: {e}")))
 }
 
 /// Registers (or replaces) a gripper.

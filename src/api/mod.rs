@@ -9,6 +9,7 @@
 
 pub mod cameras;
 pub mod cli;
+pub mod decisions;
 pub mod demo;
 pub mod error;
 pub mod events;
@@ -26,12 +27,12 @@ pub mod worker;
 
 pub use worker::start_background;
 
+use crate::geometry;
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, Request, State};
 use axum::http::Method;
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
-use crate::geometry;
 use error::ApiError;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -107,6 +108,7 @@ pub struct Shared {
     pub events: broadcast::Sender<events::ServerEvent>,
     pub metrics: Metrics,
     pub tracking: tracks::Tracking,
+    pub grasp_objects: decisions::GraspObjects,
     /// The support plane (world frame) when one is known (demo, replay of a rig with one).
     pub support_plane: Mutex<Option<scene::PlaneDto>>,
     /// Ground truth for display only (`world_from_object` and its stamp per object id).
@@ -147,6 +149,7 @@ impl AppState {
             events,
             metrics: Metrics::default(),
             tracking: tracks::Tracking::default(),
+            grasp_objects: decisions::GraspObjects::default(),
             support_plane: Mutex::new(None),
             truth: Mutex::new(BTreeMap::new()),
             stats: Mutex::new(events::Stats::default()),
@@ -193,6 +196,7 @@ fn api_router() -> OpenApiRouter<AppState> {
                 .merge(grippers::router())
                 .merge(frames::router())
                 .merge(tracks::router())
+                .merge(decisions::router())
                 .merge(scene::router())
                 .merge(events::router()),
         )

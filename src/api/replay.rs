@@ -104,9 +104,12 @@ async fn register(c: &Client, seq: &Sequence) -> anyhow::Result<()> {
     for o in &seq.rig.objects {
         let mesh = seq.load_mesh(&o.name)?;
         Client::check(
-            c.req(reqwest::Method::PUT, &format!("/objects/{}?format=ply&name={}", o.name, o.name))
-                .header("content-type", "application/octet-stream")
-                .body(mesh.to_ply_bytes()),
+            c.req(
+                reqwest::Method::PUT,
+                &format!("/objects/{}?format=ply&name={}", o.name, o.name),
+            )
+            .header("content-type", "application/octet-stream")
+            .body(mesh.to_ply_bytes()),
             &format!("registering object {}", o.name),
         )
         .await?;
@@ -119,11 +122,16 @@ async fn register(c: &Client, seq: &Sequence) -> anyhow::Result<()> {
         };
         let mount = match rig_cam.mount {
             crate::dataset::Mount::Robot => {
-                let base_from_camera = first_odometry.map(|o| o.base_from_camera).unwrap_or_else(Pose::identity);
+                let base_from_camera = first_odometry
+                    .map(|o| o.base_from_camera)
+                    .unwrap_or_else(Pose::identity);
                 json!({"type": "robot", "base_from_camera": pose_json(&base_from_camera)})
             }
             crate::dataset::Mount::Stationary => {
-                let world_from_camera = meta.camera_from_world.map(|p| p.inverse()).unwrap_or_else(Pose::identity);
+                let world_from_camera = meta
+                    .camera_from_world
+                    .map(|p| p.inverse())
+                    .unwrap_or_else(Pose::identity);
                 json!({"type": "stationary", "world_from_camera": pose_json(&world_from_camera)})
             }
         };
@@ -142,7 +150,11 @@ async fn register(c: &Client, seq: &Sequence) -> anyhow::Result<()> {
         .support_plane
         .map(|p| json!({"normal": p.normal, "point_m": p.point_m}))
         .unwrap_or(Value::Null);
-    Client::check(c.req(reqwest::Method::PUT, "/scene/support_plane").json(&plane), "setting the support plane").await?;
+    Client::check(
+        c.req(reqwest::Method::PUT, "/scene/support_plane").json(&plane),
+        "setting the support plane",
+    )
+    .await?;
     Ok(())
 }
 
@@ -179,17 +191,31 @@ fn multipart_frame(seq: &Sequence, camera: &str, frame: u32) -> anyhow::Result<r
         .part("depth", reqwest::multipart::Part::bytes(depth).file_name("depth.png"));
     let rgb = seq.rgb_path(camera, frame);
     if rgb.is_file() {
-        form = form.part("color", reqwest::multipart::Part::bytes(std::fs::read(rgb)?).file_name("rgb.png"));
+        form = form.part(
+            "color",
+            reqwest::multipart::Part::bytes(std::fs::read(rgb)?).file_name("rgb.png"),
+        );
     }
     Ok(form)
 }
 
-async fn stream(c: &Client, seq: &Sequence, rate: f64) -> anyhow::Result<(Vec<RobotFrameAnswer>, (usize, usize, usize))> {
+async fn stream(
+    c: &Client,
+    seq: &Sequence,
+    rate: f64,
+) -> anyhow::Result<(Vec<RobotFrameAnswer>, (usize, usize, usize))> {
     let robot = seq.rig.robot_camera().map(str::to_string);
     let mut items: Vec<(i64, u8, Item)> = Vec::new();
     for (name, s) in &seq.cameras {
         for (id, meta) in &s.frames {
-            items.push((meta.stamp_ns, 1, Item::Frame { camera: name.clone(), frame: *id }));
+            items.push((
+                meta.stamp_ns,
+                1,
+                Item::Frame {
+                    camera: name.clone(),
+                    frame: *id,
+                },
+            ));
         }
     }
     if let Some(odo) = &seq.odometry {
@@ -212,7 +238,9 @@ async fn stream(c: &Client, seq: &Sequence, rate: f64) -> anyhow::Result<(Vec<Ro
         }
         match item {
             Item::Odometry { frame } => {
-                let Some(o) = seq.odometry.as_ref().and_then(|m| m.get(&frame)) else { continue };
+                let Some(o) = seq.odometry.as_ref().and_then(|m| m.get(&frame)) else {
+                    continue;
+                };
                 let body = json!({
                     "stamp_ns": o.stamp_ns,
                     "odom_from_base": {"pose": pose_json(&o.odom_from_base)},
@@ -323,7 +351,11 @@ fn summarise(seq: &Sequence, answers: &[RobotFrameAnswer], counts: (usize, usize
         decisions: decisions.iter().filter(|d| d.get("decision").is_some()).count(),
         grasp_decisions: decisions
             .iter()
-            .filter(|d| d["decision"]["decision"].as_str().is_some_and(|v| v.eq_ignore_ascii_case("grasp")))
+            .filter(|d| {
+                d["decision"]["decision"]
+                    .as_str()
+                    .is_some_and(|v| v.eq_ignore_ascii_case("grasp"))
+            })
             .count(),
         mean_translation_error_m: mean(&te),
         mean_orientation_error_deg: mean(&oe),

@@ -58,7 +58,9 @@ pub fn validate_plane(p: &PlaneDto) -> Result<PlaneDto, ApiError> {
     let n = nalgebra::Vector3::from(p.normal);
     let ok = p.normal.iter().chain(&p.point_m).all(|v| v.is_finite()) && n.norm() > 1e-9;
     if !ok {
-        return Err(ApiError::Invalid("support plane needs finite numbers and a non-zero normal".into()));
+        return Err(ApiError::Invalid(
+            "support plane needs finite numbers and a non-zero normal".into(),
+        ));
     }
     let n = n.normalize();
     Ok(PlaneDto {

@@ -121,6 +121,12 @@ impl Tracking {
     pub fn track_count(&self) -> usize {
         self.board().views.len()
     }
+    /// Attaches the latest decision to a track's view.
+    pub fn set_decision(&self, track_id: u64, decision: serde_json::Value) {
+        if let Some(v) = self.board_mut().views.get_mut(&track_id) {
+            v.decision = Some(decision);
+        }
+    }
     /// Publishes a new view of a track (and appends to its history).
     pub fn publish(&self, view: TrackView) {
         let mut b = self.board_mut();

@@ -75,3 +75,15 @@ fn run_worker(state: AppState, stop: Arc<AtomicBool>) {
         let _ = set;
     }
 }
+
+/// Draws `n` poses from a track's distribution (reference frame) for a decision.
+pub fn draw_samples(
+    state: &AppState,
+    track_id: u64,
+    n: usize,
+) -> Result<super::decisions::Drawn, super::error::ApiError> {
+    let _ = (n, state.tracking.board().views.get(&track_id));
+    Err(super::error::ApiError::NotReady(
+        "the tracker is not wired in yet".into(),
+    ))
+}

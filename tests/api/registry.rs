@@ -17,8 +17,11 @@ async fn registry_survives_a_restart() {
     assert_eq!(info["name"], "Red box");
     assert_eq!(info["n_triangles"], 12);
     assert!((info["diameter_m"].as_f64().expect("diameter") - 0.2727).abs() < 0.01);
-    let r = app.put_json("/grippers/pj", &json!({"stroke_m": 0.14})).await;
+    let mut gripper = app.get_json("/grippers/default").await["gripper"].clone();
+    gripper["max_opening_m"] = json!(0.1);
+    let r = app.put_json("/grippers/pj", &gripper).await;
     assert_eq!(r.status(), 200);
+    crate::assert_problem(app.put_json("/grippers/bad", &json!({"stroke_m": 0.14})).await, 422).await;
 
     let mesh = app.get_json("/objects/box/mesh").await;
     assert_eq!(mesh["triangles"].as_array().expect("tris").len(), 12);
@@ -35,7 +38,8 @@ async fn registry_survives_a_restart() {
     assert_eq!(cams[1]["mount"]["type"], "robot");
     let obj = app.get_json("/objects/box").await;
     assert_eq!(obj["name"], "Red box");
-    assert_eq!(app.get_json("/grippers/pj").await["gripper"]["stroke_m"], 0.14);
+    assert_eq!(app.get_json("/grippers/pj").await["gripper"]["max_opening_m"], 0.1);
+    assert_eq!(app.get_json("/grippers").await.as_array().expect("list").len(), 2);
 
     // Deleting is persisted too.
     let r = app
