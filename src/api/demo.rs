@@ -241,6 +241,7 @@ fn run(state: AppState, scene: DemoScene, stop: Arc<AtomicBool>) {
                 Some(p) => *p,
                 None => {
                     let world_from_base = scene.world_from_base(t_loop);
+                    state.metrics.odometry_accepted.fetch_add(1, Ordering::Relaxed);
                     let _ = state.ingest().push_odometry(OdometryMsg {
                         stamp_ns,
                         odom_from_base: world_from_base,

@@ -60,7 +60,11 @@ pub fn router() -> OpenApiRouter<AppState> {
     responses((status = 200, description = "text/event-stream of track, decision, frame and stats events", content_type = "text/event-stream")))]
 async fn events(State(state): State<AppState>) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
     // A slow client misses events (lagged) rather than holding memory.
-    let stream = BroadcastStream::new(state.events.subscribe()).filter_map(|e| e.ok().map(|e| Ok(e.to_sse())));
+    let mut shutdown = state.shutting_down.subscribe();
+    let events = BroadcastStream::new(state.events.subscribe()).filter_map(|e| e.ok().map(|e| Ok(e.to_sse())));
+    let stream = futures::StreamExt::take_until(events, async move {
+        let _ = shutdown.wait_for(|v| *v).await;
+    });
     Sse::new(stream).keep_alive(KeepAlive::default())
 }
 

@@ -95,6 +95,11 @@ async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
         "Requests answered with a 4xx",
         m.requests_rejected.load(Ordering::Relaxed),
     );
+    let _ = writeln!(
+        s,
+        "# HELP pregrasp_step_seconds_total Time spent in tracker steps\n# TYPE pregrasp_step_seconds_total counter\npregrasp_step_seconds_total {}",
+        m.step_latency_us_sum.load(Ordering::Relaxed) as f64 * 1e-6
+    );
     let stats = state.stats.lock().unwrap_or_else(|p| p.into_inner()).clone();
     let mut gauge = |name: &str, help: &str, v: f64| {
         let _ = writeln!(s, "# HELP {name} {help}\n# TYPE {name} gauge\n{name} {v}");

@@ -160,6 +160,8 @@ pub struct Shared {
     /// The latest rates (updated once a second).
     pub stats: Mutex<events::Stats>,
     pub started: Instant,
+    /// Set when the server begins its graceful shutdown (ends the event streams).
+    pub shutting_down: tokio::sync::watch::Sender<bool>,
 }
 
 /// The state of the service (cheap to clone).
@@ -202,6 +204,7 @@ impl AppState {
             truth: Mutex::new(BTreeMap::new()),
             stats: Mutex::new(events::Stats::default()),
             started: Instant::now(),
+            shutting_down: tokio::sync::watch::channel(false).0,
         })))
     }
 
@@ -312,5 +315,11 @@ pub async fn serve_on(
     state: AppState,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
+    let flag = state.shutting_down.clone();
+    let shutdown = async move {
+        shutdown.await;
+        // Event streams never end by themselves: end them so that the drain can finish.
+        flag.send_replace(true);
+    };
     axum::serve(listener, app(state)).with_graceful_shutdown(shutdown).await
 }

@@ -19,7 +19,7 @@ fn jpeg(w: u32, h: u32) -> Vec<u8> {
 
 #[tokio::test]
 async fn frames_in_both_encodings_are_taken_and_served_back() {
-    let app = spawn_app().await;
+    let mut app = spawn_app().await;
     assert_eq!(app.put_json("/cameras/ext1", &camera_spec(false)).await.status(), 200);
     assert_eq!(app.put_json("/cameras/robot", &camera_spec(true)).await.status(), 200);
     let mut events = app.client.get(app.api("/events")).send().await.expect("events");
@@ -122,4 +122,14 @@ async fn frames_in_both_encodings_are_taken_and_served_back() {
         .expect("t");
     assert!(metrics.contains("pregrasp_frames_accepted_total 2"), "{metrics}");
     assert!(metrics.contains("pregrasp_odometry_accepted_total 3"), "{metrics}");
+
+    // Graceful shutdown ends the open event stream instead of waiting for it forever.
+    tokio::time::timeout(std::time::Duration::from_secs(10), app.stop())
+        .await
+        .expect("shutdown with an open event stream");
+    let rest = tokio::time::timeout(std::time::Duration::from_secs(5), async {
+        while let Ok(Some(_)) = events.chunk().await {}
+    })
+    .await;
+    assert!(rest.is_ok(), "the event stream ended");
 }

@@ -44,4 +44,22 @@ async fn openapi_file_matches_the_code() {
     assert_eq!(served, generated);
     let docs = app.client.get(app.url("/docs/")).send().await.expect("docs");
     assert!(docs.status().is_success(), "swagger ui at /docs/: {}", docs.status());
+
+    // The dashboard is served at / with its files.
+    let index = app.client.get(app.url("/")).send().await.expect("index");
+    assert!(
+        index.headers()["content-type"]
+            .to_str()
+            .expect("ct")
+            .starts_with("text/html")
+    );
+    assert!(index.text().await.expect("html").contains("app.js"));
+    let js = app.client.get(app.url("/app.js")).send().await.expect("app.js");
+    assert_eq!(js.status(), 200);
+    assert!(
+        js.headers()["content-type"]
+            .to_str()
+            .expect("ct")
+            .starts_with("text/javascript")
+    );
 }
