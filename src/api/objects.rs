@@ -294,8 +294,8 @@ pub fn decimate(mesh: &Mesh, max_triangles: usize) -> DisplayMesh {
                     (sums.len() - 1) as u32
                 });
                 let s = &mut sums[i as usize];
-                for k in 0..3 {
-                    s.0[k] += v[k];
+                for (acc, x) in s.0.iter_mut().zip(v) {
+                    *acc += x;
                 }
                 s.1 += 1.0;
                 i

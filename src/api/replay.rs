@@ -223,7 +223,7 @@ async fn stream(
             items.push((o.stamp_ns, 0, Item::Odometry { frame: *id }));
         }
     }
-    items.sort_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)));
+    items.sort_by_key(|a| (a.0, a.1));
     let t0 = items.first().map(|i| i.0).unwrap_or(0);
     let start = Instant::now();
     let (mut sent, mut refused, mut odometry_sent) = (0, 0, 0);
