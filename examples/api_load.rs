@@ -92,7 +92,10 @@ async fn main() -> anyhow::Result<()> {
     let t_cb = Instant::now();
     loop {
         let objects: Value = http.get(format!("{base}/objects")).send().await?.json().await?;
-        if objects.as_array().is_some_and(|a| a.iter().all(|o| o["codebook"]["status"] == "ready")) {
+        if objects
+            .as_array()
+            .is_some_and(|a| a.iter().all(|o| o["codebook"]["status"] == "ready"))
+        {
             break;
         }
         tokio::time::sleep(Duration::from_millis(200)).await;
@@ -161,9 +164,20 @@ async fn main() -> anyhow::Result<()> {
                 let meta = json!({"stamp_ns": stamp_ns, "depth_scale": 1.0, "detections": enc.detections});
                 let form = reqwest::multipart::Form::new()
                     .text("meta", meta.to_string())
-                    .part("depth", reqwest::multipart::Part::bytes(enc.depth.clone()).file_name("d.png"))
-                    .part("color", reqwest::multipart::Part::bytes(enc.color.clone()).file_name("c.png"));
-                match http.post(format!("{base}/cameras/{name}/frames")).multipart(form).send().await {
+                    .part(
+                        "depth",
+                        reqwest::multipart::Part::bytes(enc.depth.clone()).file_name("d.png"),
+                    )
+                    .part(
+                        "color",
+                        reqwest::multipart::Part::bytes(enc.color.clone()).file_name("c.png"),
+                    );
+                match http
+                    .post(format!("{base}/cameras/{name}/frames"))
+                    .multipart(form)
+                    .send()
+                    .await
+                {
                     Ok(r) if r.status().is_success() => sent += 1,
                     _ => refused += 1,
                 }
@@ -192,14 +206,21 @@ async fn main() -> anyhow::Result<()> {
     };
     let steps = metric("pregrasp_steps_total ").unwrap_or(0.0);
     println!("== soak: 3 cameras x {CAMERA_HZ} Hz for {soak_s:.0} s");
-    println!("frames sent {sent}, refused {refused}; tracker steps {steps} ({:.2} steps/s)", steps / soak_s);
+    println!(
+        "frames sent {sent}, refused {refused}; tracker steps {steps} ({:.2} steps/s)",
+        steps / soak_s
+    );
     println!(
         "frames dropped by the queue policy: {}",
         metric("pregrasp_frames_dropped_total ").unwrap_or(f64::NAN)
     );
     for q in ["0.5", "0.9", "0.99"] {
         let v = metric(&format!("pregrasp_ingest_to_estimate_seconds{{quantile=\"{q}\"}}")).unwrap_or(f64::NAN);
-        println!("ingest-to-estimate p{}: {:.1} ms", (q.parse::<f64>().unwrap_or(0.0) * 100.0).round(), v * 1e3);
+        println!(
+            "ingest-to-estimate p{}: {:.1} ms",
+            (q.parse::<f64>().unwrap_or(0.0) * 100.0).round(),
+            v * 1e3
+        );
     }
     println!(
         "mean step time {:.1} ms",
@@ -207,7 +228,11 @@ async fn main() -> anyhow::Result<()> {
     );
     println!(
         "resident memory (MiB) at t s: {}",
-        rss_samples.iter().map(|(t, m)| format!("{t:.0}:{m:.0}")).collect::<Vec<_>>().join(" ")
+        rss_samples
+            .iter()
+            .map(|(t, m)| format!("{t:.0}:{m:.0}"))
+            .collect::<Vec<_>>()
+            .join(" ")
     );
 
     // Decisions under concurrent load (the frame stream has stopped).
@@ -228,7 +253,12 @@ async fn main() -> anyhow::Result<()> {
                 let mut failed = 0;
                 for _ in 0..per_client {
                     let t = Instant::now();
-                    match http.post(format!("{base}/tracks/{id}/decision")).json(&json!({})).send().await {
+                    match http
+                        .post(format!("{base}/tracks/{id}/decision"))
+                        .json(&json!({}))
+                        .send()
+                        .await
+                    {
                         Ok(r) if r.status().is_success() => {
                             let _ = r.bytes().await;
                             lat.push(t.elapsed().as_secs_f64() * 1e3);

@@ -12,8 +12,8 @@ use axum::Json;
 use axum::extract::{Path, State};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
-use std::sync::Mutex;
 use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex};
 use utoipa::ToSchema;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
@@ -51,9 +51,10 @@ pub struct Drawn {
     pub world_from_reference: Pose,
 }
 
-/// Solid shapes per mesh content hash (a convex decomposition takes up to a second).
+/// Solid shapes per mesh content hash (a convex decomposition takes up to a second; it is
+/// built once even when many decisions ask for it at the same time).
 #[derive(Default)]
-pub struct GraspObjects(Mutex<HashMap<String, GraspObject>>);
+pub struct GraspObjects(Mutex<HashMap<String, Arc<Mutex<Option<GraspObject>>>>>);
 
 impl GraspObjects {
     pub fn get_or_build(&self, state: &AppState, object_id: &str) -> Result<GraspObject, ApiError> {
@@ -65,11 +66,19 @@ impl GraspObjects {
                 .ok_or_else(|| ApiError::not_found("object", object_id))?;
             (o.info.content_hash.clone(), o.mesh.clone())
         };
-        if let Some(g) = self.0.lock().unwrap_or_else(|p| p.into_inner()).get(&hash) {
+        let slot = self
+            .0
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .entry(hash)
+            .or_default()
+            .clone();
+        let mut slot = slot.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(g) = slot.as_ref() {
             return Ok(g.clone());
         }
         let g = GraspObject::new(&mesh).map_err(|e| ApiError::Invalid(format!("object '{object_id}': {e}")))?;
-        self.0.lock().unwrap_or_else(|p| p.into_inner()).insert(hash, g.clone());
+        *slot = Some(g.clone());
         Ok(g)
     }
 }
@@ -159,6 +168,14 @@ async fn post_decision(
     let id: u64 = id
         .parse()
         .map_err(|_| ApiError::Malformed(format!("track id '{id}' is not a non-negative integer")))?;
+    // At most one decision per core at a time (a fair queue), so that a burst of clients
+    // neither thrashes the cores nor starves the tracker.
+    let _permit = state
+        .decision_slots
+        .clone()
+        .acquire_owned()
+        .await
+        .map_err(ApiError::internal)?;
     let v = tokio::task::spawn_blocking(move || decide_blocking(&state, id, &req))
         .await
         .map_err(ApiError::internal)??;

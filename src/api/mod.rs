@@ -59,6 +59,10 @@ pub struct ApiConfig {
     pub window_ns: i64,
     /// Unprocessed frames kept per camera before the oldest is dropped (the bounded queue).
     pub max_pending_per_camera: usize,
+    /// Detections of an object are passed to the tracker only while it has fewer than this
+    /// many live (not lost) tracks of that object: a detection starts a track, it does not
+    /// duplicate one. Raise it for scenes with several instances of one object.
+    pub max_live_tracks_per_object: usize,
     /// Tracker settings.
     pub tracker: crate::tracker::TrackerConfig,
     /// Codebook grids and settings (coarse first, then optionally fine).
@@ -73,6 +77,7 @@ impl ApiConfig {
             max_body_bytes: 32 * 1024 * 1024,
             window_ns: 300_000_000,
             max_pending_per_camera: 4,
+            max_live_tracks_per_object: 1,
             tracker: crate::tracker::TrackerConfig::default(),
             codebooks: codebooks::CodebookPlan::default(),
         }
@@ -151,6 +156,8 @@ pub struct Shared {
     pub tracking: tracks::Tracking,
     pub grasp_objects: decisions::GraspObjects,
     pub codebooks: codebooks::Codebooks,
+    /// Decisions running at once (one per core).
+    pub decision_slots: Arc<tokio::sync::Semaphore>,
     /// The tracker (built when the first frame arrives; rebuilt when the cameras change).
     pub engine: Mutex<Option<worker::Engine>>,
     /// The support plane (world frame) when one is known (demo, replay of a rig with one).
@@ -199,6 +206,9 @@ impl AppState {
             tracking,
             grasp_objects: decisions::GraspObjects::default(),
             codebooks: codebooks::Codebooks::default(),
+            decision_slots: Arc::new(tokio::sync::Semaphore::new(
+                std::thread::available_parallelism().map_or(2, |n| n.get()),
+            )),
             engine: Mutex::new(None),
             support_plane: Mutex::new(None),
             truth: Mutex::new(BTreeMap::new()),

@@ -90,6 +90,7 @@ pub async fn run(args: ReplayArgs) -> anyhow::Result<ReplaySummary> {
     };
     let started = Instant::now();
     register(&client, &seq).await?;
+    wait_for_codebooks(&client).await?;
     let answers = stream(&client, &seq, args.rate).await?;
     let mut summary = summarise(&seq, &answers.0, answers.1);
     summary.wall_s = started.elapsed().as_secs_f64();
@@ -156,6 +157,25 @@ async fn register(c: &Client, seq: &Sequence) -> anyhow::Result<()> {
     )
     .await?;
     Ok(())
+}
+
+/// Waits until every object's codebook is ready (a robot would not stream before that).
+async fn wait_for_codebooks(c: &Client) -> anyhow::Result<()> {
+    let deadline = Instant::now() + Duration::from_secs(600);
+    loop {
+        let objects = Client::check(c.req(reqwest::Method::GET, "/objects"), "objects").await?;
+        let list = objects.as_array().cloned().unwrap_or_default();
+        if let Some(failed) = list.iter().find(|o| o["codebook"]["status"] == "failed") {
+            anyhow::bail!("codebook of {} failed: {}", failed["id"], failed["codebook"]["error"]);
+        }
+        if list.iter().all(|o| o["codebook"]["status"] == "ready") {
+            return Ok(());
+        }
+        if Instant::now() > deadline {
+            anyhow::bail!("codebooks not ready after 10 minutes");
+        }
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
 }
 
 /// Ground truth of a time step for the display channel: `world_from_object` of every object

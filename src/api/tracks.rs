@@ -180,6 +180,57 @@ pub fn router() -> OpenApiRouter<AppState> {
         .routes(routes!(list_tracks))
         .routes(routes!(get_track, stop_track))
         .routes(routes!(track_history))
+        .routes(routes!(track_samples))
+}
+
+/// Query of `/tracks/{id}/samples`.
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+pub struct SamplesQuery {
+    /// How many poses (1..=5,000; default 100).
+    pub n: Option<usize>,
+}
+
+/// Poses drawn from a track's distribution.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct SamplesView {
+    pub track_id: u64,
+    pub effective_sample_size: f64,
+    /// In the reference (robot camera) frame.
+    pub reference_from_object: Vec<PoseDto>,
+    pub world_from_object: Vec<PoseDto>,
+}
+
+#[utoipa::path(get, path = "/tracks/{id}/samples", tag = "tracks",
+    params(("id" = u64, Path, description = "Track id"), SamplesQuery),
+    responses((status = 200, body = SamplesView), (status = 404, body = super::error::Problem),
+        (status = 422, body = super::error::Problem), (status = 503, body = super::error::Problem)))]
+async fn track_samples(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    axum::extract::Query(q): axum::extract::Query<SamplesQuery>,
+) -> Result<Json<SamplesView>, ApiError> {
+    let id = parse_id(&id)?;
+    let n = q.n.unwrap_or(100);
+    if n == 0 || n > super::decisions::MAX_DECISION_SAMPLES {
+        return Err(ApiError::Invalid(format!(
+            "n must be in 1..={}, got {n}",
+            super::decisions::MAX_DECISION_SAMPLES
+        )));
+    }
+    let drawn = tokio::task::spawn_blocking(move || super::worker::draw_samples(&state, id, n))
+        .await
+        .map_err(ApiError::internal)??;
+    Ok(Json(SamplesView {
+        track_id: id,
+        effective_sample_size: drawn.samples.effective_sample_size,
+        reference_from_object: drawn.samples.poses.iter().map(PoseDto::from_pose).collect(),
+        world_from_object: drawn
+            .samples
+            .poses
+            .iter()
+            .map(|p| PoseDto::from_pose(&(drawn.world_from_reference * p)))
+            .collect(),
+    }))
 }
 
 #[utoipa::path(get, path = "/tracks", tag = "tracks", responses((status = 200, body = [TrackView])))]

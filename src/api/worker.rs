@@ -308,7 +308,19 @@ fn step(state: &AppState, set: &FusionSet) {
     }
     let Some(engine) = guard.as_mut() else { return };
     engine.sync_models(state);
-    let frames: Vec<CameraFrame> = set.frames.iter().filter_map(|f| to_camera_frame(state, f)).collect();
+    let mut frames: Vec<CameraFrame> = set.frames.iter().filter_map(|f| to_camera_frame(state, f)).collect();
+    // Detections start tracks: drop those of objects that already have enough live tracks.
+    let mut live: BTreeMap<&str, usize> = BTreeMap::new();
+    for t in engine.tracker.tracks() {
+        if t.status != TrackStatus::Lost {
+            *live.entry(t.object.as_str()).or_default() += 1;
+        }
+    }
+    let max_live = state.config.max_live_tracks_per_object;
+    for f in &mut frames {
+        f.detections
+            .retain(|d| live.get(d.object.as_str()).copied().unwrap_or(0) < max_live);
+    }
     if frames.is_empty() {
         return;
     }

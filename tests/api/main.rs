@@ -5,6 +5,7 @@ mod bad_requests;
 mod ingest;
 mod openapi;
 mod registry;
+mod replay;
 mod tracking;
 
 use pregrasp::api::{ApiConfig, AppState};

@@ -283,6 +283,20 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
     let expected = world_from_base(9) * base_from_camera;
     assert!((wfc.translation.vector - expected.translation.vector).norm() < 1e-6);
 
+    // Samples from the distribution, in both frames.
+    let samples = app.get_json(&format!("/tracks/{}/samples?n=50", t["id"])).await;
+    assert_eq!(samples["world_from_object"].as_array().expect("samples").len(), 50);
+    let near = samples["world_from_object"]
+        .as_array()
+        .expect("samples")
+        .iter()
+        .filter(|p| (pose_from_json(p).translation.vector - scene.world_from_object.translation.vector).norm() < 0.05)
+        .count();
+    assert!(near >= 40, "{near} of 50 samples within 5 cm of the truth");
+    crate::assert_problem(app.get(&format!("/tracks/{}/samples?n=0", t["id"])).await, 422).await;
+    let history = app.get_json(&format!("/tracks/{}/history", t["id"])).await;
+    assert!(history.as_array().expect("history").len() >= 3);
+
     // A decision with the default gripper and the table.
     let id = t["id"].as_u64().expect("id");
     let r = app
