@@ -49,7 +49,11 @@ fn poses(n: usize) -> Vec<Pose> {
 
 fn bench_render(c: &mut Criterion) {
     let renderer = Renderer::new().expect("a graphics adapter (install mesa-vulkan-drivers without a GPU)");
-    eprintln!("adapter: {} (software: {})", renderer.adapter_name(), renderer.is_software());
+    eprintln!(
+        "adapter: {} (software: {})",
+        renderer.adapter_name(),
+        renderer.is_software()
+    );
     let mesh_5k = ellipsoid(50, 50);
     assert_eq!(mesh_5k.triangles.len(), 5000);
     let mesh = renderer.upload_mesh(&mesh_5k).expect("upload");
@@ -81,7 +85,13 @@ fn bench_render(c: &mut Criterion) {
     g.sample_size(20);
     g.throughput(Throughput::Elements(1));
     g.bench_function("3_objects_15k_triangles", |b| {
-        b.iter(|| black_box(renderer.render_scene(&k640, &Pose::identity(), &objects, clip).expect("render")))
+        b.iter(|| {
+            black_box(
+                renderer
+                    .render_scene(&k640, &Pose::identity(), &objects, clip)
+                    .expect("render"),
+            )
+        })
     });
     g.finish();
 }

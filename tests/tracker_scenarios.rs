@@ -1,15 +1,21 @@
 //! Tracker scenarios on synthetic rendered scenes (coarse 10-degree grid, 160 x 120 images).
 
+#![allow(clippy::unwrap_used)] // test helpers: a failure is a test failure
+
 mod tracker_support;
 
 use nalgebra::{UnitQuaternion, Vector3};
-use pregrasp::tracker::{CameraMount, TrackStatus, Tracker, TrackerConfig};
+use pregrasp::geometry::Pose;
+use pregrasp::tracker::{CameraMount, RobotOdometry, TrackStatus, Tracker, TrackerConfig};
 use std::collections::BTreeMap;
 use tracker_support::*;
 
 fn box_symmetries() -> Vec<UnitQuaternion<f64>> {
     // the built-in box: +x half coloured differently, so only the flip about x remains
-    vec![UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)]
+    vec![UnitQuaternion::from_axis_angle(
+        &Vector3::x_axis(),
+        std::f64::consts::PI,
+    )]
 }
 
 #[test]
@@ -31,7 +37,7 @@ fn single_camera_converges_on_a_rendered_box() {
         let e = tracker.estimate(id).unwrap();
         let t = &tracker.tracks()[0];
         eprintln!(
-            "step {step}: t_err {:.3} r_err {:.1} sim {:.3} status {:?} std {:.3} ent {:.2} loglik {:.2} total {:.3}s",
+            "step {step}: t_err {:.3} r_err {:.1} sim {:?} status {:?} std {:.3} ent {:.2} loglik {:.2} total {:.3}s",
             translation_error(&e.reference_from_object, &truth),
             rotation_error_deg(&e.reference_from_object.rotation, &truth.rotation, &box_symmetries()),
             t.best_similarity,
@@ -47,4 +53,355 @@ fn single_camera_converges_on_a_rendered_box() {
     assert_eq!(tracker.tracks()[0].status, TrackStatus::Tracking);
     assert!(translation_error(&e.reference_from_object, &truth) < 0.03);
     assert!(rotation_error_deg(&e.reference_from_object.rotation, &truth.rotation, &box_symmetries()) < 20.0);
+}
+
+/// Yaw error (degrees) of an estimate about the mug's own axis, and the error of the axis.
+fn mug_errors(est: &UnitQuaternion<f64>, truth: &UnitQuaternion<f64>) -> (f64, f64) {
+    let rel = truth.inverse() * est; // object_truth_from_object_est
+    let axis_err = (rel * Vector3::z()).angle(&Vector3::z()).to_degrees();
+    let x = rel * Vector3::x();
+    let yaw = x.y.atan2(x.x).to_degrees().abs();
+    (yaw, axis_err)
+}
+
+fn run_mug(views: &[(&str, pregrasp::geometry::Pose)], steps: u64) -> (f64, f64, f64, f64, f64) {
+    let mesh = pregrasp::mesh::builtin("mug").unwrap();
+    let cb = coarse_codebook(&mesh);
+    let truth_world = on_table(&mesh, 0.0, 0.0, std::f64::consts::PI);
+    let scene = Scene::new(vec![("mug".into(), mesh.clone(), truth_world)]);
+    let mut cams = BTreeMap::new();
+    for (name, pose) in views {
+        cams.insert(
+            name.to_string(),
+            CameraMount::Stationary {
+                world_from_camera: *pose,
+            },
+        );
+    }
+    let reference = views[0].0.to_string();
+    let mut tracker = Tracker::new(TrackerConfig::default(), cams, reference);
+    tracker.add_object_model("mug", mesh.clone(), cb);
+    let truth = views[0].1.inverse() * truth_world;
+    for step in 0..steps {
+        let frames: Vec<_> = views
+            .iter()
+            .map(|(n, p)| frame(n, p, &scene, step == 0, true, 0.005, step * 7 + n.len() as u64))
+            .collect();
+        tracker.step(&frames, None).unwrap();
+    }
+    let id = tracker.tracks()[0].id;
+    let e = tracker.estimate(id).unwrap();
+    let (yaw, axis) = mug_errors(&e.reference_from_object.rotation, &truth.rotation);
+    let ll = tracker.orientation_loglik(id, &truth.rotation).unwrap();
+    eprintln!(
+        "{} views: yaw err {yaw:.1} axis err {axis:.1} loglik {ll:.2} entropy {:.2} t_err {:.3} modes {:?}",
+        views.len(),
+        e.rotation_entropy,
+        translation_error(&e.reference_from_object, &truth),
+        e.rotation_modes.iter().map(|m| m.mass).collect::<Vec<_>>()
+    );
+    (yaw, axis, ll, e.rotation_entropy, e.rotation_modes[0].mass)
+}
+
+/// The paper's Fig. 4: a mug whose handle is hidden from one camera; that camera alone cannot
+/// tell the rotation about the mug's axis, a second camera that sees the handle can, and the
+/// fused distribution is concentrated where the single view's is spread.
+#[test]
+fn second_view_resolves_the_hidden_handle() {
+    // handle points to world -x; camera A looks from +x (handle hidden behind the body)
+    let cam_a = look_at([0.35, 0.0, 0.4], [0.0, 0.0, 0.045]);
+    let cam_b = look_at([0.0, -0.35, 0.4], [0.0, 0.0, 0.045]);
+    let (_, _, ll_a, ent_a, top_a) = run_mug(&[("a", cam_a)], 5);
+    let (yaw_ab, axis_ab, ll_ab, ent_ab, top_ab) = run_mug(&[("a", cam_a), ("b", cam_b)], 5);
+    assert!(
+        yaw_ab < 25.0 && axis_ab < 20.0,
+        "fused estimate: yaw {yaw_ab} axis {axis_ab}"
+    );
+    // the single view spreads its mass over the hidden handle's positions (whichever it
+    // happens to favour); the fused one concentrates it
+    assert!(ent_a > ent_ab + 0.5, "single view entropy {ent_a} vs fused {ent_ab}");
+    assert!(top_ab > top_a + 0.1, "top mode mass: fused {top_ab} vs single {top_a}");
+    // and the truth keeps a high likelihood in the fused distribution
+    let uniform = -(pregrasp::geometry::RotationGrid::new(10).unwrap().len() as f64).ln();
+    assert!(ll_ab > uniform + 3.0, "fused truth loglik {ll_ab} (single {ll_a})");
+}
+
+fn planar(x: f64, y: f64, yaw: f64) -> Pose {
+    Pose::from_parts(
+        nalgebra::Translation3::new(x, y, 0.0),
+        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
+    )
+}
+
+fn odometry(odom_from_base: Pose, base_from_camera: Pose, step: i64) -> RobotOdometry {
+    RobotOdometry {
+        stamp_ns: step * 100_000_000,
+        odom_from_base,
+        world_from_odom: Pose::identity(),
+        base_from_camera,
+    }
+}
+
+/// The robot camera (the reference frame) drives and turns towards the object; after the
+/// first frames it sees nothing for a while, so only the odometry motion model (and the
+/// re-binned rotation prior) keeps the estimate in the moving reference frame right.
+#[test]
+fn odometry_moves_the_distribution_with_the_robot_camera() {
+    let mesh = pregrasp::mesh::builtin("box").unwrap();
+    let cb = coarse_codebook(&mesh);
+    let truth_world = on_table(&mesh, 1.2, 0.1, 0.4);
+    let scene = Scene::new(vec![("box".into(), mesh.clone(), truth_world)]);
+    let base_from_camera = look_at([0.1, 0.0, 0.6], [1.0, 0.0, 0.1]);
+    let mut cams = BTreeMap::new();
+    cams.insert("robot".to_string(), CameraMount::Robot { base_from_camera });
+    let mut tracker = Tracker::new(TrackerConfig::default(), cams, "robot".into());
+    tracker.add_object_model("box", mesh.clone(), cb);
+    let sym = box_symmetries();
+    let mut worst_t: f64 = 0.0;
+    let mut worst_r: f64 = 0.0;
+    for step in 0..10i64 {
+        let odom_from_base = planar(0.05 * step as f64, 0.01 * step as f64, 0.04 * step as f64);
+        let world_from_camera = odom_from_base * base_from_camera;
+        let frames = if step < 4 {
+            vec![frame(
+                "robot",
+                &world_from_camera,
+                &scene,
+                step == 0,
+                true,
+                0.01,
+                step as u64,
+            )]
+        } else {
+            vec![]
+        };
+        tracker
+            .step(&frames, Some(&odometry(odom_from_base, base_from_camera, step)))
+            .unwrap();
+        let truth = world_from_camera.inverse() * truth_world;
+        let id = tracker.tracks()[0].id;
+        let e = tracker.estimate(id).unwrap();
+        let te = translation_error(&e.reference_from_object, &truth);
+        let re = rotation_error_deg(&e.reference_from_object.rotation, &truth.rotation, &sym);
+        eprintln!(
+            "step {step}: t_err {te:.3} r_err {re:.1} std {:.3}",
+            e.translation_std_m
+        );
+        if step >= 2 {
+            worst_t = worst_t.max(te);
+            worst_r = worst_r.max(re);
+        }
+        let w = tracker.world_from_reference();
+        assert!((w.translation.vector - world_from_camera.translation.vector).norm() < 1e-9);
+    }
+    assert!(worst_t < 0.05, "translation error while driving blind {worst_t}");
+    assert!(worst_r < 25.0, "rotation error while driving blind {worst_r}");
+}
+
+/// Two external cameras; one drops out, then both: the track stays and its uncertainty grows
+/// instead of collapsing; it is not declared lost.
+#[test]
+fn a_camera_dropping_out_keeps_the_track() {
+    let mesh = pregrasp::mesh::builtin("box").unwrap();
+    let cb = coarse_codebook(&mesh);
+    let truth_world = on_table(&mesh, 0.0, 0.0, -0.3);
+    let scene = Scene::new(vec![("box".into(), mesh.clone(), truth_world)]);
+    let c1 = look_at([-0.8, 0.2, 0.6], [0.0, 0.0, 0.08]);
+    let c2 = look_at([0.3, -0.8, 0.6], [0.0, 0.0, 0.08]);
+    let mut cams = BTreeMap::new();
+    cams.insert("ext1".to_string(), CameraMount::Stationary { world_from_camera: c1 });
+    cams.insert("ext2".to_string(), CameraMount::Stationary { world_from_camera: c2 });
+    let mut tracker = Tracker::new(TrackerConfig::default(), cams, "ext1".into());
+    tracker.add_object_model("box", mesh.clone(), cb);
+    let truth = c1.inverse() * truth_world;
+    let sym = box_symmetries();
+    let mut std_before = 0.0;
+    for step in 0..12u64 {
+        let frames = match step {
+            0..=3 => vec![
+                frame("ext1", &c1, &scene, step == 0, true, 0.01, step),
+                frame("ext2", &c2, &scene, step == 0, true, 0.01, 100 + step),
+            ],
+            4..=7 => vec![frame("ext2", &c2, &scene, false, true, 0.01, 100 + step)],
+            _ => vec![],
+        };
+        tracker.step(&frames, None).unwrap();
+        let t = &tracker.tracks()[0];
+        let e = tracker.estimate(t.id).unwrap();
+        let te = translation_error(&e.reference_from_object, &truth);
+        let re = rotation_error_deg(&e.reference_from_object.rotation, &truth.rotation, &sym);
+        eprintln!(
+            "step {step}: t_err {te:.3} r_err {re:.1} std {:.4} seen_by {:?} comps {:?}",
+            e.translation_std_m,
+            t.seen_by,
+            e.components.iter().map(|c| c.weight).collect::<Vec<_>>()
+        );
+        assert_eq!(tracker.tracks().len(), 1);
+        assert_ne!(t.status, TrackStatus::Lost, "step {step}");
+        if (2..=7).contains(&step) {
+            assert!(te < 0.04, "step {step}: {te}");
+            assert!(re < 25.0, "step {step}: {re}");
+        }
+        if step == 7 {
+            std_before = e.translation_std_m;
+            assert_eq!(e.components.len(), 2, "both cameras' components survive");
+        }
+        if step == 11 {
+            assert!(e.translation_std_m > std_before, "uncertainty grows unseen");
+            assert!(te < 0.06);
+        }
+    }
+}
+
+/// The object is moved away while no detector runs: the track is declared lost, and the next
+/// detection restarts it at the new place. Two instances of one model are two tracks.
+#[test]
+fn a_lost_track_is_reinitialised_from_the_next_detection() {
+    let mesh = pregrasp::mesh::builtin("box").unwrap();
+    let cb = coarse_codebook(&mesh);
+    let cam = look_at([-0.9, -0.2, 0.7], [0.0, 0.0, 0.08]);
+    let mut cams = BTreeMap::new();
+    cams.insert("ext1".to_string(), CameraMount::Stationary { world_from_camera: cam });
+    let mut tracker = Tracker::new(TrackerConfig::default(), cams, "ext1".into());
+    tracker.add_object_model("box", mesh.clone(), cb);
+    let a = on_table(&mesh, 0.0, -0.2, 0.3);
+    let b = on_table(&mesh, 0.0, 0.25, 1.2);
+    let moved = on_table(&mesh, 0.35, -0.15, 0.3);
+    let two = Scene::new(vec![("box".into(), mesh.clone(), a), ("box".into(), mesh.clone(), b)]);
+    for step in 0..3u64 {
+        tracker
+            .step(&[frame("ext1", &cam, &two, step == 0, true, 0.01, step)], None)
+            .unwrap();
+    }
+    assert_eq!(tracker.tracks().len(), 2, "two instances, two tracks");
+    let find = |tracker: &Tracker, truth: &Pose| -> (u64, f64) {
+        tracker
+            .tracks()
+            .iter()
+            .map(|t| {
+                (
+                    t.id,
+                    translation_error(&tracker.estimate(t.id).unwrap().reference_from_object, truth),
+                )
+            })
+            .min_by(|x, y| x.1.total_cmp(&y.1))
+            .unwrap()
+    };
+    let (id_a, err_a) = find(&tracker, &(cam.inverse() * a));
+    let (id_b, err_b) = find(&tracker, &(cam.inverse() * b));
+    assert!(id_a != id_b && err_a < 0.03 && err_b < 0.03, "{err_a} {err_b}");
+    // instance a is carried away (out of sight of its particles); no detections
+    let after = Scene::new(vec![
+        ("box".into(), mesh.clone(), moved),
+        ("box".into(), mesh.clone(), b),
+    ]);
+    let mut lost_at = None;
+    for step in 3..12u64 {
+        let rep = tracker
+            .step(&[frame("ext1", &cam, &after, false, true, 0.01, step)], None)
+            .unwrap();
+        let t = tracker.tracks().iter().find(|t| t.id == id_a).unwrap();
+        eprintln!("step {step}: status {:?} sim {:?}", t.status, t.best_similarity);
+        if rep.tracks_lost.contains(&id_a) {
+            lost_at = Some(step);
+            break;
+        }
+    }
+    assert!(lost_at.is_some(), "the moved instance is declared lost");
+    assert_eq!(
+        tracker.tracks().iter().find(|t| t.id == id_b).unwrap().status,
+        TrackStatus::Tracking
+    );
+    // the next detections restart it
+    let rep = tracker
+        .step(&[frame("ext1", &cam, &after, true, true, 0.01, 50)], None)
+        .unwrap();
+    assert_eq!(rep.tracks_reinitialised, vec![id_a]);
+    assert!(rep.tracks_created.is_empty());
+    let f = frame("ext1", &cam, &after, true, true, 0.01, 50);
+    eprintln!("detections {:?}", f.detections);
+    for step in 51..54u64 {
+        tracker
+            .step(&[frame("ext1", &cam, &after, false, true, 0.01, step)], None)
+            .unwrap();
+        let e = tracker.estimate(id_a).unwrap();
+        eprintln!(
+            "step {step}: err {:.3} sim {:?} truth {:?} est {:?}",
+            translation_error(&e.reference_from_object, &(cam.inverse() * moved)),
+            tracker.tracks().iter().find(|t| t.id == id_a).unwrap().best_similarity,
+            (cam.inverse() * moved).translation.vector.as_slice(),
+            e.reference_from_object.translation.vector.as_slice()
+        );
+    }
+    let t = tracker.tracks().iter().find(|t| t.id == id_a).unwrap();
+    assert_eq!(t.status, TrackStatus::Tracking);
+    let e = tracker.estimate(id_a).unwrap();
+    let err = translation_error(&e.reference_from_object, &(cam.inverse() * moved));
+    assert!(err < 0.03, "re-initialised track error {err}");
+}
+
+/// A view that disagrees with the others (its extrinsics are off by a quarter turn about its
+/// optical axis, so it sees the object but reports its rotation turned) must not wipe out the
+/// distribution: the two agreeing views win, and the truth keeps a sensible likelihood.
+#[test]
+fn a_conflicting_view_does_not_wipe_out_the_distribution() {
+    let mesh = pregrasp::mesh::builtin("box").unwrap();
+    let cb = coarse_codebook(&mesh);
+    let truth_world = on_table(&mesh, 0.0, 0.0, 0.5);
+    let scene = Scene::new(vec![("box".into(), mesh.clone(), truth_world)]);
+    let ca = look_at([-0.8, -0.3, 0.6], [0.0, 0.0, 0.1]);
+    let cbm = look_at([0.2, -0.85, 0.6], [0.0, 0.0, 0.1]);
+    let cc = look_at([0.2, 0.85, 0.6], [0.0, 0.0, 0.1]);
+    // what the tracker believes about camera c: turned by 90 degrees about its optical axis
+    let cc_wrong = cc
+        * Pose::from_parts(
+            nalgebra::Translation3::identity(),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), std::f64::consts::FRAC_PI_2),
+        );
+    let run = |floor: f32| -> (f64, f64) {
+        let mut cams = BTreeMap::new();
+        cams.insert("a".to_string(), CameraMount::Stationary { world_from_camera: ca });
+        cams.insert("b".to_string(), CameraMount::Stationary { world_from_camera: cbm });
+        cams.insert(
+            "c".to_string(),
+            CameraMount::Stationary {
+                world_from_camera: cc_wrong,
+            },
+        );
+        let mut cfg = TrackerConfig::default();
+        cfg.observation.loglik_floor = floor;
+        let mut tracker = Tracker::new(cfg, cams, "a".into());
+        tracker.add_object_model("box", mesh.clone(), cb.clone());
+        for step in 0..4u64 {
+            // camera c's image is rendered from where it really is, named with the wrong pose
+            let mut fc = frame("c", &cc, &scene, false, true, 0.01, 200 + step);
+            fc.camera = "c".into();
+            let frames = vec![
+                frame("a", &ca, &scene, step == 0, true, 0.01, step),
+                frame("b", &cbm, &scene, step == 0, true, 0.01, 100 + step),
+                fc,
+            ];
+            tracker.step(&frames, None).unwrap();
+        }
+        let truth = ca.inverse() * truth_world;
+        let id = tracker.tracks()[0].id;
+        let e = tracker.estimate(id).unwrap();
+        let re = rotation_error_deg(&e.reference_from_object.rotation, &truth.rotation, &box_symmetries());
+        let ll = tracker.orientation_loglik(id, &truth.rotation).unwrap();
+        eprintln!(
+            "floor {floor}: rotation error {re:.1} deg, truth loglik {ll:.2}, seen by {:?}",
+            tracker.tracks()[0].seen_by
+        );
+        (re, ll)
+    };
+    let (re, ll) = run(TrackerConfig::default().observation.loglik_floor);
+    let uniform = -(pregrasp::geometry::RotationGrid::new(10).unwrap().len() as f64).ln();
+    assert!(re < 25.0, "the agreeing views win: {re}");
+    assert!(
+        ll > uniform,
+        "the truth keeps more than uniform mass: {ll} vs {uniform}"
+    );
+    // without the floor the conflicting view costs the truth far more
+    let (_, ll_nofloor) = run(-1e6);
+    assert!(ll > ll_nofloor + 1.0, "floored {ll} vs unfloored {ll_nofloor}");
 }

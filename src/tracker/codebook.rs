@@ -27,7 +27,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 const MAGIC: &[u8; 8] = b"PGCODEBK";
-const FORMAT_VERSION: u32 = 1;
+const FORMAT_VERSION: u32 = 2;
 
 /// How a codebook is built.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -60,7 +60,7 @@ impl Default for CodebookConfig {
             use_color: true,
             color_weight: 0.7,
             n_train: 12_000,
-            ridge_lambda_rel: 0.01,
+            ridge_lambda_rel: 1e-3,
             seed: 7,
         }
     }
@@ -138,6 +138,9 @@ pub struct Codebook {
     pub encoder: LinearDenoisingEncoder,
     /// Row-major `n_bins x code_dim`, unit rows.
     pub codes: Vec<f32>,
+    /// Per viewpoint: median normalised depth of the template's central surface
+    /// ([`crate::tracker::encoder::central_median_depth`]; NaN when none).
+    pub median_depth_norm: Vec<f32>,
     /// Seconds the build took (0 when loaded from the cache).
     pub build_seconds: f64,
     /// True when it came from the cache.
@@ -217,7 +220,7 @@ impl Codebook {
             return Err(TrackerError::Config(format!("bad codebook config {config:?}")));
         }
         let diameter_m = mesh.diameter_m();
-        if !(diameter_m > 0.0) {
+        if diameter_m.is_nan() || diameter_m <= 0.0 {
             return Err(TrackerError::Config("mesh has zero diameter".into()));
         }
         let side_m = config.crop_margin * diameter_m;
@@ -234,7 +237,11 @@ impl Codebook {
             .collect();
         let views = source.render(&k, &poses)?;
         if views.len() != poses.len() {
-            return Err(TrackerError::Render(format!("{} views for {} poses", views.len(), poses.len())));
+            return Err(TrackerError::Render(format!(
+                "{} views for {} poses",
+                views.len(),
+                poses.len()
+            )));
         }
         let layout = config.layout();
         let d = layout.dim();
@@ -255,8 +262,15 @@ impl Codebook {
         // training set: clean templates at bins, corrupted crops of the same bins
         let n = config.n_train.max(64);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(config.seed);
-        let jobs: Vec<(usize, usize, u64)> =
-            (0..n).map(|_| (rng.random_range(0..grid.n_viewpoints()), rng.random_range(0..grid.n_inplane()), rng.random())).collect();
+        let jobs: Vec<(usize, usize, u64)> = (0..n)
+            .map(|_| {
+                (
+                    rng.random_range(0..grid.n_viewpoints()),
+                    rng.random_range(0..grid.n_inplane()),
+                    rng.random(),
+                )
+            })
+            .collect();
         let step = grid.step_rad();
         let rows: Vec<(Vec<f32>, Vec<f32>, Vec<bool>)> = jobs
             .par_iter()
@@ -276,8 +290,16 @@ impl Codebook {
             noisy.extend(x);
             nmask.extend(m);
         }
-        let encoder =
-            LinearDenoisingEncoder::fit(&clean, &noisy, &nmask, n, d, config.code_dim, config.ridge_lambda_rel, config.seed)?;
+        let encoder = LinearDenoisingEncoder::fit(
+            &clean,
+            &noisy,
+            &nmask,
+            n,
+            d,
+            config.code_dim,
+            config.ridge_lambda_rel,
+            config.seed,
+        )?;
         drop((clean, noisy, nmask));
 
         // codes of every bin: one viewpoint (all in-plane rotations) per task
@@ -293,6 +315,15 @@ impl Codebook {
             encoder.encode_templates(&x, ni, out);
             normalise_rows(out, kd);
         });
+        let median_depth_norm: Vec<f32> = (0..grid.n_viewpoints())
+            .into_par_iter()
+            .map(|v| {
+                let mut x = vec![0f32; d];
+                let mut mask = vec![false; d];
+                template(v, 0.0, &mut x, &mut mask);
+                crate::tracker::encoder::central_median_depth(&layout, &x, &mask).unwrap_or(f32::NAN)
+            })
+            .collect();
         Ok(Self {
             grid,
             config: config.clone(),
@@ -300,6 +331,7 @@ impl Codebook {
             diameter_m,
             encoder,
             codes,
+            median_depth_norm,
             build_seconds: t0.elapsed().as_secs_f64(),
             from_cache: false,
         })
@@ -338,7 +370,11 @@ fn corrupt(
     sample_crop(layout, &view.0, view.1.as_ref(), &p, &mut x, &mut mask);
     // background clutter: a tilted plane behind or around the object
     let clutter = rng.random::<f64>() < 0.6;
-    let (c0, gx, gy) = (rng.random_range(0.3..1.0f32), rng.random_range(-0.4..0.4f32), rng.random_range(-0.4..0.4f32));
+    let (c0, gx, gy) = (
+        rng.random_range(0.3..1.0f32),
+        rng.random_range(-0.4..0.4f32),
+        rng.random_range(-0.4..0.4f32),
+    );
     let grey = rng.random_range(0.1..0.9f32) * layout.color_weight;
     let bg: Vec<bool> = x[..f * f].iter().map(|&v| v >= 1.0).collect();
     if clutter {
@@ -355,9 +391,9 @@ fn corrupt(
     // depth noise (relative noise of far cameras is large in normalised units)
     let sigma = rng.random_range(0.0..0.35f32);
     if let Ok(noise) = Normal::new(0.0f32, sigma.max(1e-6)) {
-        for k in 0..f * f {
-            if x[k] < 1.0 {
-                x[k] = (x[k] + noise.sample(&mut rng)).clamp(0.0, 1.0);
+        for v in x[..f * f].iter_mut() {
+            if *v < 1.0 {
+                *v = (*v + noise.sample(&mut rng)).clamp(0.0, 1.0);
             }
         }
     }
@@ -372,16 +408,19 @@ fn corrupt(
             }
         }
     }
-    // missing depth readings
+    // missing depth readings, sometimes the whole background (nothing behind the object)
     let missing = rng.random_range(0.0..0.2f64);
+    let no_background = !clutter && rng.random::<f64>() < 0.5;
     for k in 0..f * f {
-        if rng.random::<f64>() < missing {
+        if rng.random::<f64>() < missing || (no_background && bg[k]) {
             mask[k] = true;
         }
     }
+    let mut has_color = layout.use_color;
     if layout.use_color {
         let base = layout.depth_len();
         if rng.random::<f64>() < 0.25 {
+            has_color = false;
             mask[base..].fill(true);
         } else {
             let gain = rng.random_range(0.7..1.3f32);
@@ -392,7 +431,9 @@ fn corrupt(
                     let dk = (ci * f / fc) * f + cj * f / fc;
                     for ch in 0..3 {
                         let k = base + (ci * fc + cj) * 3 + ch;
-                        if clutter && bg[dk] {
+                        if no_background && bg[dk] {
+                            mask[k] = true;
+                        } else if clutter && bg[dk] {
                             x[k] = grey;
                         } else {
                             x[k] = (x[k] * gain).min(layout.color_weight);
@@ -402,6 +443,7 @@ fn corrupt(
             }
         }
     }
+    crate::tracker::encoder::inpaint_depth(layout, &mut x, &mut mask, has_color);
     (x, mask)
 }
 
@@ -411,7 +453,10 @@ fn cache_path(dir: &Path, hash: &str, grid: RotationGrid, config: &CodebookConfi
     h.update(cfg.as_bytes());
     let ch: String = h.finalize().iter().take(6).map(|b| format!("{b:02x}")).collect();
     let short = &hash[..hash.len().min(16)];
-    dir.join(format!("codebook-{short}-g{}-e{ENCODER_VERSION}-{ch}.bin", grid.step_deg()))
+    dir.join(format!(
+        "codebook-{short}-g{}-e{ENCODER_VERSION}-{ch}.bin",
+        grid.step_deg()
+    ))
 }
 
 fn push_f32s(buf: &mut Vec<u8>, v: &[f32]) {
@@ -444,6 +489,7 @@ fn write_cache(path: &Path, cb: &Codebook) -> Result<(), TrackerError> {
         &cb.encoder.pca_t,
         &cb.encoder.ridge_t,
         &cb.codes,
+        &cb.median_depth_norm,
     ] {
         push_f32s(&mut buf, v);
     }
@@ -480,8 +526,8 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
     pos += 4;
     let hl = u32_at(pos)? as usize;
     pos += 4;
-    let header: Header =
-        serde_json::from_slice(body.get(pos..pos + hl).ok_or_else(|| bad("truncated header"))?).map_err(|e| bad(&e.to_string()))?;
+    let header: Header = serde_json::from_slice(body.get(pos..pos + hl).ok_or_else(|| bad("truncated header"))?)
+        .map_err(|e| bad(&e.to_string()))?;
     pos += hl;
     if header.mesh_hash != hash
         || header.grid_step_deg != grid.step_deg()
@@ -502,7 +548,10 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
         pos += 8;
         let bytes = body.get(pos..pos + 4 * n).ok_or_else(|| bad("truncated"))?;
         pos += 4 * n;
-        Ok(bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
+        Ok(bytes
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect())
     };
     let (d, k) = (header.input_dim, header.code_dim);
     let mean_clean = read(d)?;
@@ -510,6 +559,7 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
     let pca_t = read(d * k)?;
     let ridge_t = read(d * k)?;
     let codes = read(header.n_bins * k)?;
+    let median_depth_norm = read(grid.n_viewpoints())?;
     if codes.iter().any(|v| !v.is_finite()) {
         return Err(bad("non-finite codes"));
     }
@@ -527,6 +577,7 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
             ridge_t,
         },
         codes,
+        median_depth_norm,
         build_seconds: 0.0,
         from_cache: true,
     })
@@ -540,7 +591,9 @@ pub struct RendererViews<'a> {
 
 impl<'a> RendererViews<'a> {
     pub fn new(renderer: &'a crate::render::Renderer, mesh: &Mesh) -> Result<Self, TrackerError> {
-        let handle = renderer.upload_mesh(mesh).map_err(|e| TrackerError::Render(e.to_string()))?;
+        let handle = renderer
+            .upload_mesh(mesh)
+            .map_err(|e| TrackerError::Render(e.to_string()))?;
         Ok(Self { renderer, mesh: handle })
     }
 }

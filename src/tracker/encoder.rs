@@ -51,7 +51,11 @@ impl FeatureLayout {
         (self.feature_px / 2).max(1)
     }
     pub fn color_len(&self) -> usize {
-        if self.use_color { self.color_px() * self.color_px() * 3 } else { 0 }
+        if self.use_color {
+            self.color_px() * self.color_px() * 3
+        } else {
+            0
+        }
     }
     pub fn dim(&self) -> usize {
         self.depth_len() + self.color_len()
@@ -173,10 +177,10 @@ pub fn sample_crop(
                         n += 1;
                     }
                 }
-                for ch in 0..3 {
+                for (ch, sc) in sum.iter().enumerate() {
                     let k = base + (i * fc + j) * 3 + ch;
                     if n > 0 {
-                        out[k] = sum[ch] / n as f32 * layout.color_weight;
+                        out[k] = sc / n as f32 * layout.color_weight;
                         mask[k] = false;
                     } else {
                         out[k] = 0.0;
@@ -187,6 +191,98 @@ pub fn sample_crop(
         }
     }
     valid as f64 / (f * f) as f64
+}
+
+/// Fills masked depth cells that are holes (valid on at least three of four sides, a few
+/// passes) from their neighbours; all other missing cells read as far background (1), as in
+/// the renders. A sensor's missing readings are mostly background with no return; a mean
+/// imputation (or filling from any neighbour) would blur the silhouette. Colour cells with no
+/// sample over far background read as background grey when the camera gives colour.
+pub fn inpaint_depth(layout: &FeatureLayout, x: &mut [f32], mask: &mut [bool], has_color: bool) {
+    let f = layout.feature_px;
+    let mut missing: Vec<usize> = (0..f * f).filter(|&k| mask[k]).collect();
+    let mut passes = 0;
+    while !missing.is_empty() && passes < 3 {
+        let mut filled = Vec::new();
+        for &k in &missing {
+            let (i, j) = (k / f, k % f);
+            let mut sum = 0.0;
+            let mut n = 0;
+            for (di, dj) in [(-1i64, 0i64), (1, 0), (0, -1), (0, 1)] {
+                let (a, b) = (i as i64 + di, j as i64 + dj);
+                if a >= 0 && b >= 0 && a < f as i64 && b < f as i64 {
+                    let q = a as usize * f + b as usize;
+                    if !mask[q] {
+                        sum += x[q];
+                        n += 1;
+                    }
+                }
+            }
+            // only holes (valid on three sides or more): the rest is background, read as far
+            if n >= 3 {
+                filled.push((k, sum / n as f32));
+            }
+        }
+        if filled.is_empty() {
+            break;
+        }
+        for (k, v) in &filled {
+            x[*k] = *v;
+            mask[*k] = false;
+        }
+        missing.retain(|k| mask[*k]);
+        passes += 1;
+    }
+    for k in missing {
+        x[k] = 1.0;
+        mask[k] = false;
+    }
+    // colour cells with no sample whose depth is now far background read as background
+    if layout.use_color && has_color {
+        let fc = layout.color_px();
+        let base = layout.depth_len();
+        let per = f / fc;
+        for ci in 0..fc {
+            for cj in 0..fc {
+                let k0 = base + (ci * fc + cj) * 3;
+                if !mask[k0] {
+                    continue;
+                }
+                let far = (0..per).all(|a| (0..per).all(|b| x[(ci * per + a) * f + cj * per + b] >= 1.0));
+                if far {
+                    for ch in 0..3 {
+                        x[k0 + ch] = BACKGROUND_GREY * layout.color_weight;
+                        mask[k0 + ch] = false;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Lower-quartile normalised depth of the central half of a crop's depth cells that lie strictly
+/// inside the normalisation box (the object's visible surface near its centre); `None` when
+/// no such cell is valid. Compared between an observed crop and its best template, it gives a
+/// depth error in box units: `(observed - template) * box_m` metres.
+pub fn central_median_depth(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Option<f32> {
+    let f = layout.feature_px;
+    let mut v: Vec<f32> = Vec::with_capacity(f * f / 4);
+    for i in f / 4..f - f / 4 {
+        for j in f / 4..f - f / 4 {
+            let k = i * f + j;
+            if !mask[k] && x[k] > 0.0 && x[k] < 1.0 {
+                v.push(x[k]);
+            }
+        }
+    }
+    if v.len() < 3 {
+        return None;
+    }
+    // the lower quartile: the object's front surface; a table or wall behind the object only
+    // adds larger values
+    let q = v.len() / 4;
+    v.select_nth_unstable_by(q, |a, b| a.total_cmp(b));
+    Some(v[q])
 }
 
 /// An encoder from crop features to codes. Implementations must be usable from many threads.
@@ -269,6 +365,7 @@ impl LinearDenoisingEncoder {
     /// Fits the encoder: `clean` and `corrupted` are row-major `n x d` (the same templates,
     /// clean and corrupted), `corrupted_mask` marks missing values of the corrupted crops.
     /// `ridge_lambda_rel` scales the ridge penalty by the mean diagonal of the Gram matrix.
+    #[allow(clippy::too_many_arguments)] // the sizes travel with the flat buffers
     pub fn fit(
         clean: &[f32],
         corrupted: &[f32],
@@ -373,7 +470,14 @@ impl Encoder for LinearDenoisingEncoder {
             .collect();
         self.project(&self.ridge_t, &xc, n, out);
     }
-    fn encode_templates(&self, x: &[f32], n: usize, out: &mut [f32]) {
+    // Templates go through the same denoising map as observations (the default trait method):
+    // a clean crop then matches its own bin exactly, and the noise the map suppresses is
+    // suppressed on both sides of the cosine.
+}
+
+impl LinearDenoisingEncoder {
+    /// Plain PCA codes of clean features (diagnostics, and the regression's targets).
+    pub fn pca_codes(&self, x: &[f32], n: usize, out: &mut [f32]) {
         let d = self.input_dim;
         let xc: Vec<f32> = x[..n * d]
             .iter()
@@ -408,7 +512,9 @@ mod tests {
         // coordinates and with missing values
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
         let (n, d, k) = (3000, 40, 3);
-        let basis: Vec<Vec<f32>> = (0..k).map(|_| (0..d).map(|_| rng.random::<f32>() - 0.5).collect()).collect();
+        let basis: Vec<Vec<f32>> = (0..k)
+            .map(|_| (0..d).map(|_| rng.random::<f32>() - 0.5).collect())
+            .collect();
         let noise = Normal::new(0.0f32, 0.6).unwrap();
         let mut clean = vec![0f32; n * d];
         let mut noisy = vec![0f32; n * d];
@@ -425,20 +531,28 @@ mod tests {
         let enc = LinearDenoisingEncoder::fit(&clean, &noisy, &mask, n, d, k, 1e-3, 1).unwrap();
         let mut zc = vec![0f32; n * k];
         let mut zn = vec![0f32; n * k];
-        enc.encode_templates(&clean, n, &mut zc);
+        enc.pca_codes(&clean, n, &mut zc);
         enc.encode_observations(&noisy, &mask, n, &mut zn);
         normalise_rows(&mut zc, k);
         normalise_rows(&mut zn, k);
-        let cos: f32 =
-            (0..n).map(|i| (0..k).map(|q| zc[i * k + q] * zn[i * k + q]).sum::<f32>()).sum::<f32>() / n as f32;
+        let cos: f32 = (0..n)
+            .map(|i| (0..k).map(|q| zc[i * k + q] * zn[i * k + q]).sum::<f32>())
+            .sum::<f32>()
+            / n as f32;
         // plain PCA projection of the noisy input, for comparison
         let mut zp = vec![0f32; n * k];
-        let imputed: Vec<f32> =
-            noisy.iter().zip(&mask).enumerate().map(|(i, (&v, &m))| if m { enc.mean_clean[i % d] } else { v }).collect();
-        enc.encode_templates(&imputed, n, &mut zp);
+        let imputed: Vec<f32> = noisy
+            .iter()
+            .zip(&mask)
+            .enumerate()
+            .map(|(i, (&v, &m))| if m { enc.mean_clean[i % d] } else { v })
+            .collect();
+        enc.pca_codes(&imputed, n, &mut zp);
         normalise_rows(&mut zp, k);
-        let cos_pca: f32 =
-            (0..n).map(|i| (0..k).map(|q| zc[i * k + q] * zp[i * k + q]).sum::<f32>()).sum::<f32>() / n as f32;
+        let cos_pca: f32 = (0..n)
+            .map(|i| (0..k).map(|q| zc[i * k + q] * zp[i * k + q]).sum::<f32>())
+            .sum::<f32>()
+            / n as f32;
         assert!(cos > 0.9, "ridge codes agree with clean codes: {cos}");
         assert!(cos > cos_pca + 0.03, "ridge {cos} vs pca {cos_pca}");
     }

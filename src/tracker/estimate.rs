@@ -10,10 +10,10 @@
 //!   than `jump_ratio` times the mass found near the previous estimate (PoseRBPF's
 //!   `check_rot_expectation`); without the jump a wrong first guess would stick for ever.
 
-use crate::geometry::{PoseSamples, RotationGrid, euler_to_rotation, ray_rotation};
+use crate::geometry::{Pose, PoseSamples, RotationGrid, euler_to_rotation, ray_rotation};
 use crate::tracker::bins::GridTables;
 use crate::tracker::{Component, RotationMode};
-use nalgebra::{Matrix3, Matrix4, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Matrix4, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
@@ -50,6 +50,9 @@ pub struct ParticleSet<'a> {
     /// Bin-major histograms (`hist[b * n + p]`), each particle's column sums to 1.
     pub hist: &'a [f32],
     pub tables: &'a GridTables,
+    /// The histograms' frame `H` (the reference camera when the track started): positions are
+    /// in the current reference frame, bins are allocentric in `H`.
+    pub reference_from_hist: Pose,
 }
 
 impl ParticleSet<'_> {
@@ -67,10 +70,19 @@ impl ParticleSet<'_> {
 
     /// Mixture histogram `sum_p w_p h_p` (f64).
     pub fn mixture(&self) -> Vec<f64> {
+        self.mixture_with(self.weights)
+    }
+
+    /// Mixture histogram with other per-particle factors (e.g. weights times a pending
+    /// normalisation of each histogram).
+    pub fn mixture_with(&self, factors: &[f64]) -> Vec<f64> {
+        use rayon::prelude::*;
         let n = self.n();
+        let f32s: Vec<f32> = factors.iter().map(|v| *v as f32).collect();
         self.hist
-            .chunks(n)
-            .map(|row| row.iter().zip(self.weights).map(|(h, w)| *h as f64 * w).sum())
+            .par_chunks(n)
+            .with_min_len(1024)
+            .map(|row| row.iter().zip(&f32s).map(|(h, w)| h * w).sum::<f32>() as f64)
             .collect()
     }
 
@@ -85,12 +97,23 @@ impl ParticleSet<'_> {
             let w: f64 = idx.iter().map(|&i| self.weights[i]).sum();
             let mut mean = Vector3::zeros();
             for &i in &idx {
-                mean += self.positions_m[i] * if w > 0.0 { self.weights[i] / w } else { 1.0 / idx.len() as f64 };
+                mean += self.positions_m[i]
+                    * if w > 0.0 {
+                        self.weights[i] / w
+                    } else {
+                        1.0 / idx.len() as f64
+                    };
             }
             let mut cov = Matrix3::zeros();
             for &i in &idx {
                 let d = self.positions_m[i] - mean;
-                cov += d * d.transpose() * if w > 0.0 { self.weights[i] / w } else { 1.0 / idx.len() as f64 };
+                cov += d
+                    * d.transpose()
+                    * if w > 0.0 {
+                        self.weights[i] / w
+                    } else {
+                        1.0 / idx.len() as f64
+                    };
             }
             let mut c = [[0.0; 3]; 3];
             for (r, row) in c.iter_mut().enumerate() {
@@ -124,9 +147,14 @@ impl ParticleSet<'_> {
     pub fn orientation_loglik(&self, reference_from_object: &UnitQuaternion<f64>) -> f64 {
         let n = self.n();
         let grid = self.tables.grid;
+        let r_h = self.reference_from_hist.rotation.inverse() * reference_from_object;
         let mut mass = 0.0;
         for p in 0..n {
-            let allo = ray_rotation(&self.positions_m[p]).inverse() * reference_from_object;
+            let t_h = self
+                .reference_from_hist
+                .inverse_transform_point(&Point3::from(self.positions_m[p]))
+                .coords;
+            let allo = ray_rotation(&t_h).inverse() * r_h;
             let b = grid.flat_of(&allo);
             mass += self.weights[p] * self.hist[b * n + p] as f64;
         }
@@ -170,8 +198,12 @@ impl ParticleSet<'_> {
             let a = a + (rng.random::<f64>() - 0.5) * s;
             let t = t + (rng.random::<f64>() - 0.5) * s;
             let pos = self.positions_m[p];
-            let rot = ray_rotation(&pos) * euler_to_rotation(e, a, t);
-            poses.push(crate::geometry::Pose::from_parts(Translation3::from(pos), rot));
+            let t_h = self
+                .reference_from_hist
+                .inverse_transform_point(&Point3::from(pos))
+                .coords;
+            let rot = self.reference_from_hist.rotation * ray_rotation(&t_h) * euler_to_rotation(e, a, t);
+            poses.push(Pose::from_parts(Translation3::from(pos), rot));
         }
         let ess = 1.0 / self.weights.iter().map(|w| (w / wsum).powi(2)).sum::<f64>();
         PoseSamples {
@@ -196,7 +228,9 @@ pub fn average_quaternions(qs: &[(UnitQuaternion<f64>, f64)]) -> Option<UnitQuat
     let eig = m.symmetric_eigen();
     let (i, _) = eig.eigenvalues.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1))?;
     let v = eig.eigenvectors.column(i);
-    Some(UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(v[3], v[0], v[1], v[2])))
+    Some(UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+        v[3], v[0], v[1], v[2],
+    )))
 }
 
 /// The rotation part of an estimate.
@@ -231,10 +265,13 @@ pub fn summarise_rotation(
     idx.truncate(k);
     idx.sort_by(|a, b| mixture[*b].total_cmp(&mixture[*a]));
     let ray = ray_rotation(mean_position);
-    let top: Vec<(UnitQuaternion<f64>, f64)> =
-        idx.iter().map(|&b| (ray * grid.rotation(grid.unflat(b)), mixture[b] / total)).collect();
+    let top: Vec<(UnitQuaternion<f64>, f64)> = idx
+        .iter()
+        .map(|&b| (ray * grid.rotation(grid.unflat(b)), mixture[b] / total))
+        .collect();
     // modes: greedy clustering by angle, heaviest first
-    let mut clusters: Vec<(UnitQuaternion<f64>, Vec<(UnitQuaternion<f64>, f64)>)> = Vec::new();
+    type Cluster = (UnitQuaternion<f64>, Vec<(UnitQuaternion<f64>, f64)>);
+    let mut clusters: Vec<Cluster> = Vec::new();
     for (q, m) in &top {
         if let Some(c) = clusters.iter_mut().find(|c| c.0.angle_to(q) < config.mode_merge_rad) {
             c.1.push((*q, *m));
@@ -278,8 +315,11 @@ pub fn summarise_rotation(
                         .then(|| (*q, m * (-0.5 * a * a / (config.sigma_rad * config.sigma_rad)).exp()))
                 })
                 .collect();
-            let near_mass: f64 =
-                top.iter().filter(|(q, _)| q.angle_to(prev) < config.max_angle_rad).map(|(_, m)| m).sum();
+            let near_mass: f64 = top
+                .iter()
+                .filter(|(q, _)| q.angle_to(prev) < config.max_angle_rad)
+                .map(|(_, m)| m)
+                .sum();
             if near.is_empty() || best_mass > config.jump_ratio * near_mass {
                 (global, true)
             } else {
@@ -347,10 +387,7 @@ mod tests {
         assert!(s.rotation.angle_to(&rb) < 1e-6);
         // previous estimate at mode a: b holds only 2x a's mass -> no jump at ratio 2.5
         let ra = grid.rotation(grid.unflat(ba));
-        let cfg2 = EstimateConfig {
-            jump_ratio: 2.5,
-            ..cfg
-        };
+        let cfg2 = EstimateConfig { jump_ratio: 2.5, ..cfg };
         let s2 = summarise_rotation(&grid, &h, &pos, Some(&ra), &cfg2);
         assert!(!s2.jumped && s2.rotation.angle_to(&ra) < 1e-6);
         let s3 = summarise_rotation(&grid, &h, &pos, Some(&ra), &EstimateConfig { jump_ratio: 1.5, ..cfg });

@@ -22,11 +22,11 @@
 
 use crate::geometry::{Pose, PoseSamples};
 use crate::mesh::Mesh;
-use crate::tracker::bins::{GridTables, add_pulled, blur, gaussian_kernel, pull};
+use crate::tracker::bins::{GridTables, blur, fast_exp, gaussian_kernel};
 use crate::tracker::codebook::Codebook;
 use crate::tracker::estimate::{EstimateConfig, ParticleSet, summarise_rotation};
 use crate::tracker::motion::{OdometryNoise, brownian, move_with_odometry};
-use crate::tracker::observation::{ObservationConfig, ViewImage, observe_view};
+use crate::tracker::observation::{ObservationConfig, ViewImage, add_loglik, observe_view};
 use crate::tracker::{
     CameraFrame, CameraMount, Detection, Estimate, ParticleView, RobotOdometry, StepReport, Track, TrackStatus,
     TrackerError,
@@ -77,7 +77,7 @@ impl Default for TrackerConfig {
             only_reference_camera: false,
             observation: ObservationConfig::default(),
             estimate: EstimateConfig::default(),
-            lost_similarity: 0.45,
+            lost_similarity: 0.75,
             lost_after_steps: 5,
             brownian_sigma_m: 0.005,
             odometry_noise: OdometryNoise::default(),
@@ -119,9 +119,21 @@ struct TrackState {
     sources: Vec<usize>,
     weights: Vec<f64>,
     hist: Vec<f32>,
+    /// Previous rotation estimate, in the histograms' frame.
     rotation: Option<UnitQuaternion<f64>>,
     estimate: Option<Estimate>,
+    /// The frame of the histograms (the reference camera when the track started). Keeping
+    /// the histograms there avoids re-binning the prior at every robot motion (repeated
+    /// nearest-bin re-binning by rotations below half a bin would never move it at all);
+    /// every view, the reference camera included, is pulled through its own map instead.
+    reference_from_hist: Pose,
+    /// Last bin map per camera with the rotation it was built for: reused while the rotation
+    /// moves by less than [`MAP_REUSE_RAD`] (static cameras, a slowly moving mean).
+    map_cache: Vec<(String, UnitQuaternion<f64>, Arc<Vec<u32>>)>,
 }
+
+/// A cached bin map is reused while its rotation differs by less than this (a bin is 5 degrees).
+const MAP_REUSE_RAD: f64 = 0.002;
 
 impl TrackState {
     fn n(&self) -> usize {
@@ -134,6 +146,7 @@ impl TrackState {
             weights: &self.weights,
             hist: &self.hist,
             tables,
+            reference_from_hist: self.reference_from_hist,
         }
     }
 }
@@ -259,13 +272,20 @@ impl Tracker {
         Some(s.set(&self.models[s.model].tables).sample_poses(n, rng))
     }
 
-    pub fn orientation_loglik(&self, track_id: u64, reference_from_object_rotation: &UnitQuaternion<f64>) -> Option<f64> {
+    pub fn orientation_loglik(
+        &self,
+        track_id: u64,
+        reference_from_object_rotation: &UnitQuaternion<f64>,
+    ) -> Option<f64> {
         let i = self.index_of(track_id)?;
         let s = &self.states[i];
         if s.n() == 0 {
             return None;
         }
-        Some(s.set(&self.models[s.model].tables).orientation_loglik(reference_from_object_rotation))
+        Some(
+            s.set(&self.models[s.model].tables)
+                .orientation_loglik(reference_from_object_rotation),
+        )
     }
 
     pub fn particles(&self, track_id: u64) -> Option<Vec<ParticleView>> {
@@ -288,7 +308,9 @@ impl Tracker {
             return Some(Pose::identity());
         }
         match self.cameras.get(camera)? {
-            CameraMount::Stationary { world_from_camera } => Some(world_from_camera.inverse() * self.world_from_reference),
+            CameraMount::Stationary { world_from_camera } => {
+                Some(world_from_camera.inverse() * self.world_from_reference)
+            }
             CameraMount::Robot { base_from_camera } => {
                 let base_from_reference = match (odometry, self.cameras.get(&self.reference)) {
                     (Some(o), _) => o.base_from_camera,
@@ -302,7 +324,11 @@ impl Tracker {
 
     /// One filter step with the frames of this time (any subset of the cameras) and the robot's
     /// odometry (when the reference camera is on the robot).
-    pub fn step(&mut self, frames: &[CameraFrame], odometry: Option<&RobotOdometry>) -> Result<StepReport, TrackerError> {
+    pub fn step(
+        &mut self,
+        frames: &[CameraFrame],
+        odometry: Option<&RobotOdometry>,
+    ) -> Result<StepReport, TrackerError> {
         let t_start = Instant::now();
         let mut report = StepReport::default();
         for f in frames {
@@ -310,7 +336,10 @@ impl Tracker {
                 return Err(TrackerError::UnknownCamera(f.camera.clone()));
             }
             let (w, h) = (f.intrinsics.width, f.intrinsics.height);
-            if f.depth.width != w || f.depth.height != h || f.color.as_ref().is_some_and(|c| c.width != w || c.height != h) {
+            if f.depth.width != w
+                || f.depth.height != h
+                || f.color.as_ref().is_some_and(|c| c.width != w || c.height != h)
+            {
                 return Err(TrackerError::ImageSize {
                     camera: f.camera.clone(),
                     got_w: f.depth.width,
@@ -320,9 +349,16 @@ impl Tracker {
                 });
             }
         }
-        let frames: Vec<&CameraFrame> =
-            frames.iter().filter(|f| !self.config.only_reference_camera || f.camera == self.reference).collect();
-        let stamp = frames.iter().map(|f| f.stamp_ns).max().or(odometry.map(|o| o.stamp_ns)).unwrap_or(self.stamp_ns);
+        let frames: Vec<&CameraFrame> = frames
+            .iter()
+            .filter(|f| !self.config.only_reference_camera || f.camera == self.reference)
+            .collect();
+        let stamp = frames
+            .iter()
+            .map(|f| f.stamp_ns)
+            .max()
+            .or(odometry.map(|o| o.stamp_ns))
+            .unwrap_or(self.stamp_ns);
         self.stamp_ns = stamp;
         report.stamp_ns = stamp;
 
@@ -346,8 +382,8 @@ impl Tracker {
             if s.n() > 0 {
                 let grid = self.models[s.model].tables.grid;
                 let n = s.n();
+                // the blur preserves each histogram's mass: no renormalisation needed
                 blur(&grid, &mut s.hist, n, &kernel, &mut self.scratch);
-                normalise_columns(&mut s.hist, n);
             }
         }
         report.timings.blur_s += t0.elapsed().as_secs_f64();
@@ -381,16 +417,12 @@ impl Tracker {
     }
 
     fn apply_odometry(&mut self, prev: &RobotOdometry, cur: &RobotOdometry) {
-        let mean_from = |s: &TrackState| -> Vector3<f64> { s.set(&self.models[s.model].tables).mean_position() };
-        let prev_from_cur_exact = prev.base_from_camera.inverse()
-            * prev.odom_from_base.inverse()
-            * cur.odom_from_base
-            * cur.base_from_camera;
+        let prev_from_cur_exact =
+            prev.base_from_camera.inverse() * prev.odom_from_base.inverse() * cur.odom_from_base * cur.base_from_camera;
         for i in 0..self.states.len() {
             if self.states[i].n() == 0 {
                 continue;
             }
-            let old_mean = mean_from(&self.states[i]);
             let s = &mut self.states[i];
             move_with_odometry(
                 &mut s.positions,
@@ -401,20 +433,7 @@ impl Tracker {
                 &self.config.odometry_noise,
                 &mut self.rng,
             );
-            // re-bin the prior: new bin b reads old bin map[b]
-            let new_mean = prev_from_cur_exact.inverse_transform_point(&Point3::from(old_mean)).coords;
-            let q = crate::geometry::ray_rotation(&old_mean).inverse()
-                * prev_from_cur_exact.rotation
-                * crate::geometry::ray_rotation(&new_mean);
-            if q.angle() > 1e-4 {
-                let tables = self.models[s.model].tables.clone();
-                let map = tables.pull_map(&q);
-                self.scratch.resize(s.hist.len(), 0.0);
-                pull(&mut self.scratch, &s.hist, &map, s.n());
-                std::mem::swap(&mut self.scratch, &mut s.hist);
-                let n = s.n();
-                normalise_columns(&mut s.hist, n);
-            }
+            s.reference_from_hist = prev_from_cur_exact.inverse() * s.reference_from_hist;
         }
     }
 
@@ -440,7 +459,10 @@ impl Tracker {
             let p = view_from_ref * Point3::from(m);
             match frame.intrinsics.project(&p) {
                 Some([u, v]) => {
-                    u >= bx - margin * bw && u <= bx + bw * (1.0 + margin) && v >= by - margin * bh && v <= by + bh * (1.0 + margin)
+                    u >= bx - margin * bw
+                        && u <= bx + bw * (1.0 + margin)
+                        && v >= by - margin * bh
+                        && v <= by + bh * (1.0 + margin)
                 }
                 None => false,
             }
@@ -469,6 +491,8 @@ impl Tracker {
                         self.states[i].weights.clear();
                         self.states[i].hist.clear();
                         self.states[i].rotation = None;
+                        self.states[i].reference_from_hist = Pose::identity();
+                        self.states[i].map_cache.clear();
                         self.tracks[i].status = TrackStatus::Initialising;
                         self.tracks[i].weak_steps = 0;
                         i
@@ -481,7 +505,7 @@ impl Tracker {
                             object: det.object.clone(),
                             status: TrackStatus::Initialising,
                             stamp_ns: self.stamp_ns,
-                            best_similarity: f64::NAN,
+                            best_similarity: None,
                             weak_steps: 0,
                             seen_by: Vec::new(),
                         });
@@ -493,6 +517,8 @@ impl Tracker {
                             hist: Vec::new(),
                             rotation: None,
                             estimate: None,
+                            reference_from_hist: Pose::identity(),
+                            map_cache: Vec::new(),
                         });
                         report.tracks_created.push(id);
                         self.states.len() - 1
@@ -514,7 +540,10 @@ impl Tracker {
         view_from_ref: &Pose,
         ci: usize,
     ) -> Vec<Vector3<f64>> {
-        let robot = matches!(self.cameras.get(&self.camera_names[ci]), Some(CameraMount::Robot { .. }));
+        let robot = matches!(
+            self.cameras.get(&self.camera_names[ci]),
+            Some(CameraMount::Robot { .. })
+        );
         let n = if robot || self.camera_names[ci] == self.reference {
             self.config.particles_from_robot_camera
         } else {
@@ -525,8 +554,14 @@ impl Tracker {
         let (cu, cv) = (bx + bw / 2.0, by + bh / 2.0);
         let k = &frame.intrinsics;
         let mut depths: Vec<f32> = Vec::new();
-        let (x0, x1) = ((bx + bw * 0.25).max(0.0) as u32, ((bx + bw * 0.75) as u32).min(k.width.saturating_sub(1)));
-        let (y0, y1) = ((by + bh * 0.25).max(0.0) as u32, ((by + bh * 0.75) as u32).min(k.height.saturating_sub(1)));
+        let (x0, x1) = (
+            (bx + bw * 0.25).max(0.0) as u32,
+            ((bx + bw * 0.75) as u32).min(k.width.saturating_sub(1)),
+        );
+        let (y0, y1) = (
+            (by + bh * 0.25).max(0.0) as u32,
+            ((by + bh * 0.75) as u32).min(k.height.saturating_sub(1)),
+        );
         for y in y0..=y1 {
             for x in x0..=x1 {
                 let d = frame.depth.get(x, y);
@@ -570,7 +605,11 @@ impl Tracker {
             row[old_n..].fill(tables.volume(b) as f32);
         });
         s.hist = hist;
-        let w_new = if old_n > 0 { 1.0 / new_n as f64 } else { 1.0 / parts.len() as f64 };
+        let w_new = if old_n > 0 {
+            1.0 / new_n as f64
+        } else {
+            1.0 / parts.len() as f64
+        };
         for w in &mut s.weights {
             *w *= old_n as f64 / new_n as f64;
         }
@@ -587,16 +626,23 @@ impl Tracker {
         let n = self.states[ti].n();
         let nb = tables.grid.len();
         let obs_cfg = self.config.observation;
-        self.fused.clear();
+        // sized, not zeroed: the first gated view assigns
         self.fused.resize(nb * n, 0.0);
         let mut depth_log = vec![0f32; n];
         let mut best = f32::NEG_INFINITY;
         let mut seen_by = Vec::new();
         let mut in_some_image = false;
         let mean_ref = self.states[ti].set(&tables).mean_position();
+        let reference_from_hist = self.states[ti].reference_from_hist;
+        let mean_hist = reference_from_hist
+            .inverse_transform_point(&Point3::from(mean_ref))
+            .coords;
         for (frame, view_from_ref, _ci) in views {
-            let positions: Vec<Vector3<f64>> =
-                self.states[ti].positions.iter().map(|p| (view_from_ref * Point3::from(*p)).coords).collect();
+            let positions: Vec<Vector3<f64>> = self.states[ti]
+                .positions
+                .iter()
+                .map(|p| (view_from_ref * Point3::from(*p)).coords)
+                .collect();
             let mean_view = (view_from_ref * Point3::from(mean_ref)).coords;
             if let Some(uv) = frame.intrinsics.project(&Point3::from(mean_view))
                 && frame.intrinsics.contains(uv)
@@ -621,31 +667,54 @@ impl Tracker {
             let t0 = Instant::now();
             best = best.max(ev.best_similarity);
             seen_by.push(frame.camera.clone());
-            if frame.camera == self.reference {
-                self.fused.par_iter_mut().zip(ev.loglik.par_iter()).for_each(|(f, l)| *f += l);
+            // histogram bin b (frame H) reads this view's bin map[b]
+            let q = crate::geometry::ray_rotation(&mean_view).inverse()
+                * view_from_ref.rotation
+                * reference_from_hist.rotation
+                * crate::geometry::ray_rotation(&mean_hist);
+            if q.angle() < 1e-9 {
+                add_loglik(&mut self.fused, &ev, None, n, seen_by.len() == 1);
             } else {
-                let q = crate::geometry::ray_rotation(&mean_view).inverse()
-                    * view_from_ref.rotation
-                    * crate::geometry::ray_rotation(&mean_ref);
-                let map = tables.pull_map(&q);
-                add_pulled(&mut self.fused, &ev.loglik, &map, n);
+                let cache = &mut self.states[ti].map_cache;
+                let cached = cache
+                    .iter()
+                    .find(|(c, cq, _)| c == &frame.camera && cq.angle_to(&q) < MAP_REUSE_RAD)
+                    .map(|(_, _, m)| m.clone());
+                let map = match cached {
+                    Some(m) => m,
+                    None => {
+                        let m = Arc::new(tables.pull_map(&q));
+                        cache.retain(|(c, _, _)| c != &frame.camera);
+                        cache.push((frame.camera.clone(), q, m.clone()));
+                        m
+                    }
+                };
+                add_loglik(&mut self.fused, &ev, Some(&map), n, seen_by.len() == 1);
             }
             for (d, l) in depth_log.iter_mut().zip(&ev.depth_log) {
                 *d += l;
             }
-            self.sim = ev.loglik;
+            self.sim = ev.sim;
             report.timings.fusion_s += t0.elapsed().as_secs_f64();
         }
         let t0 = Instant::now();
         let track = &mut self.tracks[ti];
         track.stamp_ns = self.stamp_ns;
         track.seen_by = seen_by.clone();
-        track.best_similarity = if best.is_finite() { best as f64 } else { f64::NAN };
+        track.best_similarity = best.is_finite().then_some(best as f64);
         let had_evidence = !seen_by.is_empty();
+        let mut pending_scale: Option<Vec<f32>> = None;
         if had_evidence {
             let s = &mut self.states[ti];
-            // per particle max of the fused log-likelihood
-            let fmax = column_max(&self.fused, n);
+            // per particle max of the fused log-likelihood, for exp's range; with floored views
+            // the sum cannot go below `floor * views` (exp of that is well inside f32), so the
+            // pass is skipped and 0 (the largest possible value) used
+            let worst = obs_cfg.loglik_floor * seen_by.len() as f32;
+            let fmax = if worst > -80.0 {
+                vec![0f32; n]
+            } else {
+                column_max(&self.fused, n)
+            };
             let floor_rel = self.config.prior_floor_rel as f32;
             let fused = &self.fused;
             let sums: Vec<f64> = s
@@ -654,16 +723,17 @@ impl Tracker {
                 .zip(fused.par_chunks(n * 1024))
                 .enumerate()
                 .map(|(c, (hc, fc))| {
-                    let mut acc = vec![0f64; n];
+                    // f32 sums over 1,024 bins, f64 across chunks
+                    let mut acc = vec![0f32; n];
                     for (k, (hrow, frow)) in hc.chunks_mut(n).zip(fc.chunks(n)).enumerate() {
                         let floor = floor_rel * tables.volume(c * 1024 + k) as f32;
-                        for p in 0..n {
-                            let v = hrow[p].max(floor) * (frow[p] - fmax[p]).exp();
-                            hrow[p] = v;
-                            acc[p] += v as f64;
+                        for (((h, f), m), a) in hrow.iter_mut().zip(frow).zip(&fmax).zip(acc.iter_mut()) {
+                            let v = h.max(floor) * fast_exp(f - m);
+                            *h = v;
+                            *a += v;
                         }
                     }
-                    acc
+                    acc.into_iter().map(f64::from).collect::<Vec<f64>>()
                 })
                 .reduce(
                     || vec![0f64; n],
@@ -676,7 +746,9 @@ impl Tracker {
                 );
             // new log weights: old + log marginal (Eq. 7) + depth term
             let mut logw: Vec<f64> = (0..n)
-                .map(|p| s.weights[p].max(1e-300).ln() + sums[p].max(1e-300).ln() + fmax[p] as f64 + depth_log[p] as f64)
+                .map(|p| {
+                    s.weights[p].max(1e-300).ln() + sums[p].max(1e-300).ln() + fmax[p] as f64 + depth_log[p] as f64
+                })
                 .collect();
             let m = logw.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
             for v in &mut logw {
@@ -684,12 +756,13 @@ impl Tracker {
             }
             s.weights = logw;
             normalise(&mut s.weights);
-            let inv: Vec<f32> = sums.iter().map(|v| if *v > 0.0 { (1.0 / v) as f32 } else { 0.0 }).collect();
-            s.hist.par_chunks_mut(n).for_each(|row| {
-                for (h, i) in row.iter_mut().zip(&inv) {
-                    *h *= i;
-                }
-            });
+            // each histogram's normalisation is applied lazily: in the estimate's mixture
+            // and in the resampling gather (one pass over all bins less)
+            pending_scale = Some(
+                sums.iter()
+                    .map(|v| if *v > 0.0 { (1.0 / v) as f32 } else { 0.0 })
+                    .collect(),
+            );
         }
         report.timings.fusion_s += t0.elapsed().as_secs_f64();
         // component floor
@@ -717,9 +790,39 @@ impl Tracker {
             let s = &self.states[ti];
             let set = s.set(&tables);
             let mean = set.mean_position();
+            let mean_hist = s
+                .reference_from_hist
+                .inverse_transform_point(&Point3::from(mean))
+                .coords;
             let (tcov, tstd) = set.translation_covariance();
-            let mixture = set.mixture();
-            let summary = summarise_rotation(&tables.grid, &mixture, &mean, s.rotation.as_ref(), &self.config.estimate);
+            let mixture = match &pending_scale {
+                Some(scale) => {
+                    let w: Vec<f64> = s.weights.iter().zip(scale).map(|(w, k)| w * *k as f64).collect();
+                    set.mixture_with(&w)
+                }
+                None => set.mixture(),
+            };
+            let mut summary = summarise_rotation(
+                &tables.grid,
+                &mixture,
+                &mean_hist,
+                s.rotation.as_ref(),
+                &self.config.estimate,
+            );
+            let rotation_hist = summary.rotation;
+            let to_ref = s.reference_from_hist.rotation;
+            summary.rotation = to_ref * rotation_hist;
+            for m in &mut summary.modes {
+                let q = to_ref
+                    * UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                        m.rotation_xyzw[3],
+                        m.rotation_xyzw[0],
+                        m.rotation_xyzw[1],
+                        m.rotation_xyzw[2],
+                    ));
+                let v = q.quaternion();
+                m.rotation_xyzw = [v.i, v.j, v.k, v.w];
+            }
             let mut cov6 = [[0.0; 6]; 6];
             for r in 0..3 {
                 for c in 0..3 {
@@ -737,7 +840,7 @@ impl Tracker {
                 status,
                 stamp_ns: self.stamp_ns,
             };
-            (est, summary.rotation)
+            (est, rotation_hist)
         };
         self.states[ti].rotation = Some(est.1);
         self.states[ti].estimate = Some(est.0);
@@ -746,14 +849,14 @@ impl Tracker {
         // resampling within components
         if had_evidence {
             let t0 = Instant::now();
-            self.resample(ti);
+            self.resample(ti, pending_scale.as_deref());
             report.timings.resampling_s += t0.elapsed().as_secs_f64();
         }
     }
 
     /// Systematic resampling inside each source camera's component: the component keeps its
     /// particle count and its weight (spread evenly over its new particles).
-    fn resample(&mut self, ti: usize) {
+    fn resample(&mut self, ti: usize, scale: Option<&[f32]>) {
         let s = &mut self.states[ti];
         let n = s.n();
         let mut src_idx: Vec<usize> = Vec::with_capacity(n);
@@ -782,11 +885,14 @@ impl Tracker {
         }
         let positions: Vec<Vector3<f64>> = src_idx.iter().map(|&i| s.positions[i]).collect();
         self.scratch.resize(s.hist.len(), 0.0);
-        self.scratch.par_chunks_mut(n).zip(s.hist.par_chunks(n)).for_each(|(dst, src)| {
-            for (d, &i) in dst.iter_mut().zip(&src_idx) {
-                *d = src[i];
-            }
-        });
+        self.scratch
+            .par_chunks_mut(n)
+            .zip(s.hist.par_chunks(n))
+            .for_each(|(dst, src)| {
+                for (d, &i) in dst.iter_mut().zip(&src_idx) {
+                    *d = src[i] * scale.map_or(1.0, |k| k[i]);
+                }
+            });
         std::mem::swap(&mut self.scratch, &mut s.hist);
         s.positions = positions;
         s.weights = new_w;
@@ -805,36 +911,6 @@ fn normalise(w: &mut [f64]) {
         let u = 1.0 / w.len().max(1) as f64;
         w.fill(u);
     }
-}
-
-/// Each particle's histogram (a column of the bin-major layout) rescaled to sum to 1.
-fn normalise_columns(h: &mut [f32], n: usize) {
-    let sums = h
-        .par_chunks(n * 1024)
-        .map(|c| {
-            let mut acc = vec![0f64; n];
-            for row in c.chunks(n) {
-                for (a, v) in acc.iter_mut().zip(row) {
-                    *a += *v as f64;
-                }
-            }
-            acc
-        })
-        .reduce(
-            || vec![0f64; n],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    *x += y;
-                }
-                a
-            },
-        );
-    let inv: Vec<f32> = sums.iter().map(|s| if *s > 0.0 { (1.0 / s) as f32 } else { 0.0 }).collect();
-    h.par_chunks_mut(n).for_each(|row| {
-        for (v, i) in row.iter_mut().zip(&inv) {
-            *v *= i;
-        }
-    });
 }
 
 fn column_max(h: &[f32], n: usize) -> Vec<f32> {
@@ -873,10 +949,45 @@ fn floor_components(s: &mut TrackState, min_weight: f64) {
             let m = (0..s.n()).filter(|&i| s.sources[i] == c).count() as f64;
             for i in 0..s.n() {
                 if s.sources[i] == c {
-                    s.weights[i] = if wc > 0.0 { s.weights[i] * min_weight / wc } else { min_weight / m };
+                    s.weights[i] = if wc > 0.0 {
+                        s.weights[i] * min_weight / wc
+                    } else {
+                        min_weight / m
+                    };
                 }
             }
         }
     }
     normalise(&mut s.weights);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tracker_can_move_between_threads() {
+        fn assert_send_sync<T: Send + Sync>() {}
+        assert_send_sync::<Tracker>();
+        assert_send_sync::<Codebook>();
+    }
+
+    #[test]
+    fn component_floor_keeps_every_camera_alive() {
+        let mut s = TrackState {
+            model: 0,
+            positions: vec![Vector3::zeros(); 4],
+            sources: vec![0, 0, 1, 1],
+            weights: vec![0.5, 0.5, 1e-9, 1e-9],
+            hist: vec![],
+            rotation: None,
+            estimate: None,
+            reference_from_hist: Pose::identity(),
+            map_cache: vec![],
+        };
+        floor_components(&mut s, 0.05);
+        let w1: f64 = s.weights[2] + s.weights[3];
+        assert!((w1 - 0.05 / 1.05).abs() < 1e-9, "{w1}");
+        assert!((s.weights.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+    }
 }

@@ -14,14 +14,30 @@
 //! - [`raster`]: a small CPU z-buffer rasteriser (codebooks and tests without a GPU renderer).
 //!
 //! # Where the state lives
-//! As in the paper, particles and histograms live in the *reference* frame (the robot camera,
-//! or the stationary reference camera of a rig without one). The grasp decision consumes the
-//! distribution in that frame directly, and the odometry noise enters the motion model
-//! (Eq. 3) where it belongs. The price is one re-binning of the rotation prior per step when
-//! the robot camera rotates: that is the same pull-map machinery as the fusion of views (one
-//! bin map per step, shared by all particles of an object), a few milliseconds.
+//! Particle *positions* live in the reference frame (the robot camera, or the stationary
+//! reference camera of a rig without one), as in the paper: the grasp decision consumes the
+//! distribution there, and the odometry noise enters the motion model (Eq. 3) per particle.
+//! The rotation *histograms* of a track live in the frame `H` of the reference camera at the
+//! moment the track started (`reference_from_hist` is updated with the exact odometry). We
+//! measured why: re-binning the prior into the moving reference frame at every step through a
+//! nearest-bin pull map never moves it at all when the per-step rotation is below half a bin
+//! (2.5 degrees on the full grid), so the estimate fell behind by the accumulated rotation
+//! (14 degrees after 6 steps of 2.3 degrees in the odometry scenario test; 9 degrees steady,
+//! the codebook's own error, with the `H` frame). Every view, the reference camera included,
+//! is pulled into `H` through one bin map per view and step; the cost is one more map
+//! (about 191,808 rotation products) per step for the robot camera.
 //!
-//! Histograms are allocentric with respect to each particle's ray in the reference camera.
+//! Histograms are allocentric with respect to each particle's ray (in `H`); the bin maps use
+//! the rays of the object's mean position (particles of one object differ by about a degree).
+//!
+//! # Robustness
+//! - Each view's log-likelihood is floored (`ObservationConfig::loglik_floor`): a view that
+//!   disagrees with the others can lower a bin by a bounded factor only, so two agreeing views
+//!   outvote a third, and the distribution is never wiped out (see the conflicting-view test).
+//! - A view is gated off when its best similarity is below `gate_similarity` (it does not see
+//!   the object); an object no camera sees keeps its prior, which grows with the motion noise.
+//! - Resampling is stratified by source camera and component weights are floored, so the
+//!   mixture of Eq. 2 keeps one component per camera.
 
 pub mod bins;
 pub mod codebook;
@@ -121,8 +137,8 @@ pub struct Track {
     pub status: TrackStatus,
     /// Stamp of the last step that updated the track.
     pub stamp_ns: i64,
-    /// Best absolute cosine similarity of the last step over all views (NaN when unseen).
-    pub best_similarity: f64,
+    /// Best absolute cosine similarity of the last step over all views (None when unseen).
+    pub best_similarity: Option<f64>,
     /// Steps in a row whose evidence was below the lost threshold.
     pub weak_steps: u32,
     /// Cameras that gave evidence in the last step.

@@ -69,7 +69,11 @@ pub fn sample_base_motion(
     let th0 = yaw_of(&odom_from_base_prev.rotation);
     let th1 = yaw_of(&odom_from_base_cur.rotation);
     let trans = ((x1 - x0).powi(2) + (y1 - y0).powi(2)).sqrt();
-    let rot1 = if trans < 1e-6 { 0.0 } else { wrap((y1 - y0).atan2(x1 - x0) - th0) };
+    let rot1 = if trans < 1e-6 {
+        0.0
+    } else {
+        wrap((y1 - y0).atan2(x1 - x0) - th0)
+    };
     let rot2 = wrap(th1 - th0 - rot1);
     let a = noise;
     let rot1_n = rot1 - normal(rng, a.alpha1 * rot1 * rot1 + a.alpha2 * trans * trans);
@@ -105,7 +109,9 @@ pub fn move_with_odometry(
     for p in positions_m.iter_mut() {
         let base_prev_from_base_cur = sample_base_motion(odom_from_base_prev, odom_from_base_cur, noise, rng);
         let prev_from_cur = base_from_camera_prev.inverse() * base_prev_from_base_cur * base_from_camera_cur;
-        *p = prev_from_cur.inverse_transform_point(&nalgebra::Point3::from(*p)).coords;
+        *p = prev_from_cur
+            .inverse_transform_point(&nalgebra::Point3::from(*p))
+            .coords;
     }
 }
 
@@ -151,7 +157,13 @@ mod tests {
         let spread = |b: &Pose, rng: &mut rand_chacha::ChaCha8Rng| -> f64 {
             let ex = a.inverse() * b;
             (0..400)
-                .map(|_| (sample_base_motion(&a, b, &OdometryNoise::default(), rng).translation.vector - ex.translation.vector).norm())
+                .map(|_| {
+                    (sample_base_motion(&a, b, &OdometryNoise::default(), rng)
+                        .translation
+                        .vector
+                        - ex.translation.vector)
+                        .norm()
+                })
                 .sum::<f64>()
                 / 400.0
         };

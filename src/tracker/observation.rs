@@ -32,8 +32,8 @@ pub struct ObservationConfig {
     pub loglik_floor: f32,
     /// A view whose best absolute similarity is below this does not see the object.
     pub gate_similarity: f32,
-    /// Sigma of the depth-consistency term (on `score / max score`).
-    pub depth_sigma: f32,
+    /// Sigma (m) of the depth check at 1 m; it grows linearly with the distance.
+    pub depth_sigma_m: f32,
     /// Lowest log term of the depth check per view.
     pub depth_floor: f32,
 }
@@ -43,8 +43,8 @@ impl Default for ObservationConfig {
         Self {
             sigma: 0.06,
             loglik_floor: -12.0,
-            gate_similarity: 0.35,
-            depth_sigma: 0.15,
+            gate_similarity: 0.55,
+            depth_sigma_m: 0.015,
             depth_floor: -6.0,
         }
     }
@@ -53,8 +53,14 @@ impl Default for ObservationConfig {
 /// What one view says about one object's particles.
 #[derive(Debug, Clone)]
 pub struct ViewEvidence {
-    /// Log-likelihood per (view bin, particle), bin-major (only when the view is gated in).
-    pub loglik: Vec<f32>,
+    /// Cosine similarity per (view bin, particle), bin-major (only when the view is gated in);
+    /// [`add_loglik`] turns it into the log-likelihood on the fly.
+    pub sim: Vec<f32>,
+    /// Per particle `1 / c_max` (0 for unusable crops).
+    pub inv_best: Vec<f32>,
+    /// `-1 / (2 sigma^2)`.
+    pub k: f32,
+    pub floor: f32,
     /// Log depth-consistency term per particle.
     pub depth_log: Vec<f32>,
     /// Best absolute similarity over valid particles and bins.
@@ -75,7 +81,8 @@ pub struct ViewImage<'a> {
 }
 
 /// Crops and codes of particles at `positions_in_view_m`; returns (codes row-major `n x k`
-/// unit rows, valid flags, depth scores, crop seconds, encoding seconds).
+/// unit rows, valid flags, central median normalised depth (NaN: none), crop seconds,
+/// encoding seconds).
 pub fn encode_particles(
     codebook: &Codebook,
     view: &ViewImage,
@@ -110,20 +117,12 @@ pub fn encode_particles(
                 zero_is_far: false,
             };
             let share = sample_crop(&layout, view.depth, view.color, &params, &mut x, &mut m);
-            // depth consistency: share of the central cells whose depth lies inside the box
-            let (mut inside, mut total) = (0usize, 0usize);
-            for i in f / 4..f - f / 4 {
-                for j in f / 4..f - f / 4 {
-                    let c = i * f + j;
-                    if !m[c] {
-                        total += 1;
-                        if x[c] > 0.0 && x[c] < 1.0 {
-                            inside += 1;
-                        }
-                    }
-                }
-            }
-            let score = if total > 0 { inside as f32 / total as f32 } else { 0.0 };
+            // depth consistency (below) reads the raw cells; the encoder gets inpainted ones
+            let raw_x = x[..f * f].to_vec();
+            let raw_m = m[..f * f].to_vec();
+            crate::tracker::encoder::inpaint_depth(&layout, &mut x, &mut m, view.color.is_some());
+            // depth check input: the central surface of the raw crop
+            let score = crate::tracker::encoder::central_median_depth(&layout, &raw_x, &raw_m).unwrap_or(f32::NAN);
             (x, m, share >= MIN_VALID_SHARE, score)
         })
         .collect();
@@ -163,13 +162,15 @@ pub fn match_codes(codebook: &Codebook, codes: &[f32], n: usize, out: &mut Vec<f
         return;
     }
     let qt = DMatrixView::from_slice_with_strides(codes, n, kd, kd, 1);
-    out.par_chunks_mut(MATCH_CHUNK_BINS * n).enumerate().for_each(|(c, chunk)| {
-        let b0 = c * MATCH_CHUNK_BINS;
-        let len = chunk.len() / n;
-        let cv = DMatrixView::from_slice(&codebook.codes[b0 * kd..(b0 + len) * kd], kd, len);
-        let mut sv = DMatrixViewMut::from_slice(chunk, n, len);
-        sv.gemm(1.0, &qt, &cv, 0.0);
-    });
+    out.par_chunks_mut(MATCH_CHUNK_BINS * n)
+        .enumerate()
+        .for_each(|(c, chunk)| {
+            let b0 = c * MATCH_CHUNK_BINS;
+            let len = chunk.len() / n;
+            let cv = DMatrixView::from_slice(&codebook.codes[b0 * kd..(b0 + len) * kd], kd, len);
+            let mut sv = DMatrixViewMut::from_slice(chunk, n, len);
+            sv.gemm(1.0, &qt, &cv, 0.0);
+        });
 }
 
 /// The evidence of one view for particles at `positions_in_view_m`, or `None` when the view
@@ -191,55 +192,88 @@ pub fn observe_view(
     match_codes(codebook, &codes, n, sim);
     let matching_s = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
-    let best = sim
+    // best similarity per particle (a vectorised max), then each particle's best bin
+    let mx = sim
         .par_chunks(n * 1024)
-        .map(|c| {
-            let mut m = f32::NEG_INFINITY;
-            for row in c.chunks(n) {
-                for (v, ok) in row.iter().zip(&valid) {
-                    if *ok && *v > m {
-                        m = *v;
-                    }
+        .map(|chunk| {
+            let mut m = vec![f32::NEG_INFINITY; n];
+            for row in chunk.chunks(n) {
+                for (a, v) in m.iter_mut().zip(row) {
+                    *a = a.max(*v);
                 }
             }
             m
         })
-        .reduce(|| f32::NEG_INFINITY, f32::max);
-    if !(best >= config.gate_similarity) {
-        return None;
-    }
-    let inv = 1.0 / best;
-    let k = -0.5 / (config.sigma * config.sigma);
-    let floor = config.loglik_floor;
-    sim.par_chunks_mut(n * 1024).for_each(|c| {
-        for row in c.chunks_mut(n) {
-            for (v, ok) in row.iter_mut().zip(&valid) {
-                *v = if *ok {
-                    let r = 1.0 - *v * inv;
-                    (k * r * r).max(floor)
-                } else {
-                    floor
-                };
-            }
-        }
-    });
-    let max_score = score.iter().zip(&valid).filter(|(_, v)| **v).map(|(s, _)| *s).fold(0.0f32, f32::max);
-    let kd = -0.5 / (config.depth_sigma * config.depth_sigma);
-    let depth_log: Vec<f32> = score
+        .reduce(
+            || vec![f32::NEG_INFINITY; n],
+            |mut a, b| {
+                for (x, y) in a.iter_mut().zip(b) {
+                    *x = x.max(y);
+                }
+                a
+            },
+        );
+    let best = mx
         .iter()
         .zip(&valid)
-        .map(|(s, v)| {
-            if !*v || max_score <= 0.0 {
-                config.depth_floor
-            } else {
-                let r = 1.0 - s / max_score;
-                (kd * r * r).max(config.depth_floor)
+        .filter(|(_, v)| **v)
+        .map(|(b, _)| *b)
+        .fold(f32::NEG_INFINITY, f32::max);
+    if best.is_nan() || best < config.gate_similarity {
+        return None;
+    }
+    let arg = sim
+        .par_chunks(n * 1024)
+        .enumerate()
+        .map(|(c, chunk)| {
+            let mut a = vec![u32::MAX; n];
+            for (r, row) in chunk.chunks(n).enumerate() {
+                let b = (c * 1024 + r) as u32;
+                for ((ai, v), m) in a.iter_mut().zip(row).zip(&mx) {
+                    *ai = if *v == *m { b } else { *ai };
+                }
             }
+            a
+        })
+        .reduce(
+            || vec![u32::MAX; n],
+            |mut a, b| {
+                for (x, y) in a.iter_mut().zip(b) {
+                    if *x == u32::MAX {
+                        *x = y;
+                    }
+                }
+                a
+            },
+        );
+    let arg: Vec<usize> = arg
+        .into_iter()
+        .map(|a| if a == u32::MAX { 0 } else { a as usize })
+        .collect();
+    // per particle 1 / c_max; 0 for unusable crops, whose r = 1 then lands on the floor
+    let inv_best: Vec<f32> = valid.iter().map(|v| if *v { 1.0 / best } else { 0.0 }).collect();
+    // depth check (PoseRBPF renders at the mean pose; we compare the crop's central surface
+    // depth with that of the particle's best template): error (m) = (observed - template) * box
+    let n_inplane = codebook.grid.n_inplane();
+    let box_m = codebook.box_m() as f32;
+    let depth_log: Vec<f32> = (0..n)
+        .map(|p| {
+            let tmpl = codebook.median_depth_norm[arg[p] / n_inplane];
+            let obs = score[p];
+            if !valid[p] || !obs.is_finite() || !tmpl.is_finite() {
+                return config.depth_floor;
+            }
+            let err_m = (obs - tmpl) * box_m;
+            let sigma = config.depth_sigma_m * (positions_in_view_m[p].z as f32).max(0.3);
+            (-0.5 * err_m * err_m / (sigma * sigma)).max(config.depth_floor)
         })
         .collect();
     let likelihoods_s = t1.elapsed().as_secs_f64();
     Some(ViewEvidence {
-        loglik: std::mem::take(sim),
+        sim: std::mem::take(sim),
+        inv_best,
+        k: -0.5 / (config.sigma * config.sigma),
+        floor: config.loglik_floor,
         depth_log,
         best_similarity: best,
         valid,
@@ -248,4 +282,33 @@ pub fn observe_view(
         matching_s,
         likelihoods_s,
     })
+}
+
+/// Adds a view's log-likelihood into `dst` (bin-major, `n` per bin), pulling through `map`
+/// (`dst[b] += ll[map[b]]`; `None`: the identity): `max(k (1 - c / c_max)^2, floor)`.
+/// With `assign`, `dst` is overwritten instead (the first view of a step: no zeroing pass).
+pub fn add_loglik(dst: &mut [f32], ev: &ViewEvidence, map: Option<&[u32]>, n: usize, assign: bool) {
+    let (k, floor) = (ev.k, ev.floor);
+    let inv = &ev.inv_best;
+    dst.par_chunks_mut(n * 1024).enumerate().for_each(|(c, chunk)| {
+        let b0 = c * 1024;
+        for (r, row) in chunk.chunks_mut(n).enumerate() {
+            let src_b = match map {
+                Some(m) => m[b0 + r] as usize,
+                None => b0 + r,
+            };
+            let src = &ev.sim[src_b * n..(src_b + 1) * n];
+            if assign {
+                for ((d, s), i) in row.iter_mut().zip(src).zip(inv) {
+                    let x = 1.0 - s * i;
+                    *d = (k * x * x).max(floor);
+                }
+            } else {
+                for ((d, s), i) in row.iter_mut().zip(src).zip(inv) {
+                    let x = 1.0 - s * i;
+                    *d += (k * x * x).max(floor);
+                }
+            }
+        }
+    });
 }

@@ -21,12 +21,7 @@ pub struct RasterImage {
 
 /// Renders `objects` (mesh, `camera_from_object`) into one image. Background depth is 0 (no
 /// reading), background colour `background`.
-pub fn render(
-    intrinsics: &Intrinsics,
-    objects: &[(&Mesh, Pose)],
-    near_m: f64,
-    background: [u8; 3],
-) -> RasterImage {
+pub fn render(intrinsics: &Intrinsics, objects: &[(&Mesh, Pose)], near_m: f64, background: [u8; 3]) -> RasterImage {
     let w = intrinsics.width as usize;
     let h = intrinsics.height as usize;
     let mut zbuf = vec![f32::INFINITY; w * h];
@@ -50,9 +45,19 @@ pub fn render(
                 continue;
             }
             let xmin = s.iter().map(|q| q[0]).fold(f64::INFINITY, f64::min).floor().max(0.0) as usize;
-            let xmax = s.iter().map(|q| q[0]).fold(f64::NEG_INFINITY, f64::max).ceil().min(w as f64 - 1.0);
+            let xmax = s
+                .iter()
+                .map(|q| q[0])
+                .fold(f64::NEG_INFINITY, f64::max)
+                .ceil()
+                .min(w as f64 - 1.0);
             let ymin = s.iter().map(|q| q[1]).fold(f64::INFINITY, f64::min).floor().max(0.0) as usize;
-            let ymax = s.iter().map(|q| q[1]).fold(f64::NEG_INFINITY, f64::max).ceil().min(h as f64 - 1.0);
+            let ymax = s
+                .iter()
+                .map(|q| q[1])
+                .fold(f64::NEG_INFINITY, f64::max)
+                .ceil()
+                .min(h as f64 - 1.0);
             if xmax < 0.0 || ymax < 0.0 {
                 continue;
             }
