@@ -158,7 +158,8 @@ function trackLabel(t) {
 
 function upsertTrack(t) {
   const prev = state.tracks.get(t.id);
-  if (prev && t.decision === undefined) t.decision = prev.decision;
+  // A track event without a decision keeps the last one from the `decision` events.
+  if (prev && (t.decision === undefined || t.decision === null)) t.decision = prev.decision;
   state.tracks.set(t.id, t);
   if (state.selected === null) state.selected = t.id;
   const key = String(t.id);
@@ -443,21 +444,27 @@ function renderStats() {
 }
 setInterval(renderStats, 1000);
 
+/** Centre on the objects (or on everything when none is tracked yet), radius to the cameras. */
 function sceneCenterAndRadius(tracks) {
-  const pts = [];
+  const all = [];
+  const objects = [];
   for (const cam of state.scene?.cameras ?? []) {
     const p = parsePose(cam.world_from_camera);
-    if (p) pts.push(p.t);
+    if (p) all.push(p.t);
   }
   for (const t of tracks) {
     const p = parsePose(t.world_from_object);
-    if (p) pts.push(p.t);
+    if (p) {
+      all.push(p.t);
+      objects.push(p.t);
+    }
   }
-  if (state.scene?.support_plane?.point_m) pts.push(state.scene.support_plane.point_m);
-  if (!pts.length) return null;
-  const c = [0, 1, 2].map((i) => pts.reduce((s, p) => s + p[i], 0) / pts.length);
-  const r = Math.max(0.3, ...pts.map((p) => Math.hypot(p[0] - c[0], p[1] - c[1], p[2] - c[2])));
-  return { c, r };
+  if (state.scene?.support_plane?.point_m) all.push(state.scene.support_plane.point_m);
+  if (!all.length) return null;
+  const centerOf = (pts) => [0, 1, 2].map((i) => pts.reduce((s, p) => s + p[i], 0) / pts.length);
+  const c = centerOf(objects.length ? objects : all);
+  const far = Math.max(...all.map((p) => Math.hypot(p[0] - c[0], p[1] - c[1], p[2] - c[2])));
+  return { c, r: Math.max(0.3, objects.length ? far * 0.7 : far) };
 }
 
 function fitView(force) {

@@ -256,7 +256,14 @@ export function niceTicks(lo, hi, count) {
 
 function logTicks(lo, hi) {
   const out = [];
-  for (let e = Math.floor(Math.log10(lo)); e <= Math.ceil(Math.log10(hi)); e++) out.push(Math.pow(10, e));
+  // Fewer than three decades: label 1, 2 and 5 of each decade so the axis is never bare.
+  const mantissas = Math.log10(hi / lo) < 3 ? [1, 2, 5] : [1];
+  for (let e = Math.floor(Math.log10(lo)); e <= Math.ceil(Math.log10(hi)); e++) {
+    for (const m of mantissas) {
+      const v = m * Math.pow(10, e);
+      if (v >= lo * 0.999 && v <= hi * 1.001) out.push(v);
+    }
+  }
   return out;
 }
 
