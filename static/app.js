@@ -6,7 +6,7 @@
 // (events handled), data-tracks, data-decision (verdict of the selected track),
 // data-particles-drawn (particles in the last 3D frame), data-plot-points (points in the
 // fullest plot), data-event-rate-hz (events/s seen over the last 10 s), data-connects (event
-// stream connections opened).
+// stream connections opened), data-track-updates (`track` events handled).
 
 import { composePose, cross, invertPose, normalize, parsePose, transformPoint, unprojectPixel } from "./math.js";
 import { SceneGeometry, View3D } from "./view3d.js";
@@ -48,6 +48,7 @@ const state = {
   panels: new Map(), // camera id -> CameraPanel
   fittedOnce: false,
   connects: 0,
+  trackUpdates: 0,
 };
 
 const colors = {
@@ -268,7 +269,11 @@ function connect() {
       fn(data);
       scheduleRender();
     });
-  handle("track", (t) => upsertTrack(t));
+  handle("track", (t) => {
+    state.trackUpdates += 1;
+    document.body.dataset.trackUpdates = String(state.trackUpdates);
+    upsertTrack(t);
+  });
   handle("decision", (d) => {
     const t = state.tracks.get(d.track_id);
     if (!t) return;

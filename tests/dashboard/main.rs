@@ -198,3 +198,100 @@ async fn dashboard_shows_live_mock_service_and_reconnects() {
     assert!(weight < PAGE_WEIGHT_BUDGET_BYTES, "static/ weighs {weight} B");
     browser.close().await;
 }
+
+/// A free local port: bind port 0, read it, release it (the server binds it right after).
+fn free_port() -> u16 {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").expect("bind a free port");
+    l.local_addr().expect("local address").port()
+}
+
+/// `pregrasp serve --demo` as a child process, killed when dropped.
+struct DemoServer {
+    child: tokio::process::Child,
+    log: PathBuf,
+    base_url: String,
+}
+
+impl DemoServer {
+    async fn start() -> DemoServer {
+        let port = free_port();
+        let log = target_dir().join("dashboard-demo-server.log");
+        let log_file = std::fs::File::create(&log).expect("server log file");
+        let child = tokio::process::Command::new(env!("CARGO_BIN_EXE_pregrasp"))
+            .args(["serve", "--demo", "--addr", &format!("127.0.0.1:{port}")])
+            .env(
+                "WGPU_BACKEND",
+                std::env::var("WGPU_BACKEND").unwrap_or_else(|_| "vulkan".into()),
+            )
+            .stdin(std::process::Stdio::null())
+            .stdout(log_file.try_clone().expect("log file"))
+            .stderr(log_file)
+            .kill_on_drop(true)
+            .spawn()
+            .expect("start pregrasp serve --demo");
+        let mut server = DemoServer {
+            child,
+            log,
+            base_url: format!("http://127.0.0.1:{port}"),
+        };
+        server.wait_healthy(Duration::from_secs(180)).await;
+        server
+    }
+
+    fn log_tail(&self) -> String {
+        let text = std::fs::read_to_string(&self.log).unwrap_or_default();
+        let lines: Vec<&str> = text.lines().collect();
+        lines[lines.len().saturating_sub(30)..].join("\n")
+    }
+
+    async fn wait_healthy(&mut self, timeout: Duration) {
+        let deadline = Instant::now() + timeout;
+        let url = format!("{}/healthz", self.base_url);
+        loop {
+            if let Ok(r) = reqwest::get(&url).await
+                && r.status().is_success()
+            {
+                return;
+            }
+            if let Ok(Some(status)) = self.child.try_wait() {
+                panic!("pregrasp serve --demo exited with {status}; log:\n{}", self.log_tail());
+            }
+            assert!(
+                Instant::now() < deadline,
+                "pregrasp serve --demo not healthy after {timeout:?}; log:\n{}",
+                self.log_tail()
+            );
+            tokio::time::sleep(Duration::from_millis(250)).await;
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "waits for `pregrasp serve --demo` from the api branch"]
+async fn dashboard_follows_pregrasp_serve_demo() {
+    let server = DemoServer::start().await;
+    let mut browser = Browser::launch(WIDTH_PX, HEIGHT_PX).await.expect("launch Chromium");
+    let page = &mut browser.page;
+    check_live_dashboard(page, &server.base_url).await;
+
+    let track_updates_before = body_number(page, "trackUpdates").await;
+    let window = Duration::from_secs(10);
+    let t0 = Instant::now();
+    let rate = measure_update_rate_hz(page, window).await;
+    let track_rate = (body_number(page, "trackUpdates").await - track_updates_before) / t0.elapsed().as_secs_f64();
+    let shot = target_dir().join("dashboard-screenshot.png");
+    let bytes = page.screenshot(&shot).await.expect("screenshot");
+    let weight = page_weight_bytes();
+    eprintln!(
+        "dashboard (pregrasp serve --demo): page weight {weight} B, update rate seen by the page \
+         {rate:.1} events/s ({track_rate:.1} track events/s) over {window:?}, screenshot {} ({bytes} B)",
+        shot.display()
+    );
+    assert!(
+        rate >= 2.0,
+        "the demo must update the page at >= 2 Hz, saw {rate:.2} events/s; server log:\n{}",
+        server.log_tail()
+    );
+    browser.close().await;
+    drop(server);
+}
