@@ -33,6 +33,8 @@ const TRACKS_RESYNC_MS = 5_000;
 const FRUSTUM_DEPTH_M = 0.12;
 const TABLE_HALF_SIZE_M = 0.8;
 const TABLE_CELL_M = 0.1;
+const GRIPPER_FINGER_M = 0.05;
+const GRIPPER_MARGIN_M = 0.01;
 
 const state = {
   scene: null,
@@ -49,6 +51,7 @@ const state = {
   fittedOnce: false,
   connects: 0,
   trackUpdates: 0,
+  historyLoaded: new Set(),
 };
 
 const colors = {
@@ -153,18 +156,24 @@ function timeS(stampNs) {
   return (stampNs - state.t0Ns) / 1e9;
 }
 
+/** Objects are coloured by their id, the key detections carry too. */
+function objectColor(t) {
+  return colors.objectCss(String(t.object_id ?? t.object_name));
+}
+
 function trackLabel(t) {
   return `${t.object_name ?? t.object_id} #${t.id}`;
 }
 
 function upsertTrack(t) {
   const prev = state.tracks.get(t.id);
+  if (!prev && !state.historyLoaded.has(t.id)) loadHistory(t);
   // A track event without a decision keeps the last one from the `decision` events.
   if (prev && (t.decision === undefined || t.decision === null)) t.decision = prev.decision;
   state.tracks.set(t.id, t);
   if (state.selected === null) state.selected = t.id;
   const key = String(t.id);
-  const color = colors.objectCss(t.object_name ?? String(t.object_id));
+  const color = objectColor(t);
   const label = trackLabel(t);
   const tS = timeS(t.stamp_ns);
   plots.std.setSeries(key, label, color);
@@ -185,10 +194,33 @@ function upsertTrack(t) {
 
 function addDecisionPoint(t, d, tS) {
   const key = String(t.id);
-  plots.pSuccess.setSeries(key, trackLabel(t), colors.objectCss(t.object_name ?? String(t.object_id)));
+  plots.pSuccess.setSeries(key, trackLabel(t), objectColor(t));
   plots.pSuccess.add(key, tS, d.p_success);
   if (Number.isFinite(d.threshold)) {
     plots.pSuccess.setRefLines([{ y: d.threshold, label: `threshold ${d.threshold}`, color: OKABE.grey }]);
+  }
+}
+
+/** Fills the plots with what happened before this page was opened (/tracks/{id}/history). */
+async function loadHistory(t) {
+  state.historyLoaded.add(t.id);
+  try {
+    const history = await getJson(`/api/v1/tracks/${encodeURIComponent(t.id)}/history`);
+    if (!Array.isArray(history) || !history.length) return;
+    const key = String(t.id);
+    const pts = (f) => history.map((h) => [timeS(h.stamp_ns), f(h)]).filter(([x, y]) => Number.isFinite(x) && Number.isFinite(y));
+    plots.std.prepend(key, pts((h) => h.translation_std_m));
+    plots.rotation.prepend(`${key}/entropy`, pts((h) => h.rotation_entropy));
+    if (history.some((h) => h.truth)) {
+      const label = trackLabel(t);
+      plots.tErr.setSeries(key, label, objectColor(t));
+      plots.rErr.setSeries(key, label, objectColor(t));
+      plots.tErr.prepend(key, pts((h) => h.truth?.translation_error_m ?? NaN));
+      plots.rErr.prepend(key, pts((h) => h.truth?.orientation_error_deg ?? NaN));
+    }
+    scheduleRender();
+  } catch (e) {
+    console.warn("track history unavailable", e);
   }
 }
 
@@ -368,7 +400,7 @@ function renderTrackList(tracks) {
     row.className = "row";
     const sw = document.createElement("span");
     sw.className = "swatch";
-    sw.style.background = colors.objectCss(t.object_name ?? String(t.object_id));
+    sw.style.background = objectColor(t);
     const name = document.createElement("span");
     name.className = "name";
     name.textContent = trackLabel(t);
@@ -579,7 +611,7 @@ function buildGeometry(tracks) {
         if (sp) g.triad(sp, 0.025, AXIS_COLORS.map((c) => rgba(c, 0.45)), transformPoint);
       }
     }
-    g.label(mean.t, trackLabel(t), colors.objectCss(t.object_name ?? String(t.object_id)));
+    g.label(mean.t, trackLabel(t), objectColor(t));
     drawGripper(g, t, mean);
   }
   return { geometry: g, particles };
@@ -605,13 +637,17 @@ function drawGripper(g, t, worldFromObject) {
   const verdict = verdictOf(d);
   const css = verdict === "grasp" ? OKABE.green : OKABE.orange;
   const col = rgba(css);
-  const halfOpening = Number(d.grasp?.opening_m ?? d.grasp?.width_m ?? 0.08) / 2;
-  const finger = 0.05;
+  // Open around the object's width along the closing axis (grasp.width_m) with a margin.
+  const widthM = Number(d.grasp?.width_m);
+  const halfOpening = (Number.isFinite(widthM) && widthM > 0 ? widthM : 0.08) / 2 + GRIPPER_MARGIN_M;
+  const finger = GRIPPER_FINGER_M;
+  const tip = 0.1 * finger;
   const P = (x, y, z) => transformPoint(worldFromGripper, [x, y, z]);
-  // Fingers from the palm (z = -finger) to the tips (z = 0), palm across x, wrist behind it.
+  // The frame's origin is the tool centre point between the fingers: palm across x behind it,
+  // fingers along +z up to just past it, the wrist further back.
   g.line(P(-halfOpening, 0, -finger), P(halfOpening, 0, -finger), col);
-  g.line(P(-halfOpening, 0, -finger), P(-halfOpening, 0, 0), col);
-  g.line(P(halfOpening, 0, -finger), P(halfOpening, 0, 0), col);
+  g.line(P(-halfOpening, 0, -finger), P(-halfOpening, 0, tip), col);
+  g.line(P(halfOpening, 0, -finger), P(halfOpening, 0, tip), col);
   g.line(P(0, 0, -finger), P(0, 0, -finger - 0.06), col);
   g.label(P(0, 0, -finger - 0.06), `gripper (${verdict})`, css);
 }

@@ -37,6 +37,17 @@ export class TimePlot {
     this.dirty = true;
   }
 
+  /** Inserts older points (sorted by time) before the first point of a series. */
+  prepend(key, points) {
+    const s = this.series.get(key);
+    if (!s) return;
+    const first = s.points.length ? s.points[0][0] : Infinity;
+    const older = points.filter(([t, y]) => t < first && Number.isFinite(y));
+    if (!older.length) return;
+    s.points = older.concat(s.points).slice(-MAX_POINTS_PER_SERIES);
+    this.dirty = true;
+  }
+
   setRefLines(lines) {
     this.refLines = lines;
     this.dirty = true;
@@ -240,6 +251,7 @@ export class TimePlot {
       ctx.fillText("no data yet", pad.left + pw / 2, pad.top + ph / 2);
     }
     c.dataset.plotPoints = String(drawn);
+    c.dataset.tMinS = visible.length ? tMin.toFixed(3) : "";
   }
 }
 

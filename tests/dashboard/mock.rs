@@ -24,9 +24,9 @@ use tower_http::services::ServeDir;
 
 pub const TICK: Duration = Duration::from_millis(100);
 const PARTICLES_PER_OBJECT: usize = 150;
-const OBJECTS: [(u64, u32, &str, [f64; 3]); 2] = [
-    (1, 5, "mustard_bottle", [0.10, 0.02, 0.095]),
-    (2, 3, "tomato_can", [-0.12, 0.15, 0.05]),
+const OBJECTS: [(u64, &str, &str, [f64; 3]); 2] = [
+    (1, "obj_000005", "mustard_bottle", [0.10, 0.02, 0.095]),
+    (2, "obj_000003", "tomato_can", [-0.12, 0.15, 0.05]),
 ];
 
 #[derive(Clone)]
@@ -56,6 +56,7 @@ pub async fn spawn() -> MockServer {
         .route("/healthz", get(|| async { "ok" }))
         .route("/api/v1/scene", get(scene))
         .route("/api/v1/tracks", get(tracks))
+        .route("/api/v1/tracks/{id}/history", get(history))
         .route("/api/v1/objects/{id}/mesh", get(mesh))
         .route("/api/v1/cameras/{id}/latest", get(camera_latest))
         .route("/api/v1/cameras/{id}/latest/{file}", get(camera_image))
@@ -192,7 +193,23 @@ async fn tracks(State(m): State<Mock>) -> Json<Value> {
     Json(Value::Array((0..OBJECTS.len()).map(|i| track_view(i, tick)).collect()))
 }
 
-async fn mesh(Path(id): Path<u32>) -> Response {
+/// One point per tick so far, like the service's ring buffer of past estimates.
+async fn history(State(m): State<Mock>, Path(id): Path<u64>) -> Response {
+    let Some(index) = OBJECTS.iter().position(|o| o.0 == id) else {
+        return StatusCode::NOT_FOUND.into_response();
+    };
+    let points: Vec<Value> = (0..m.tick())
+        .map(|tick| {
+            let t = track_view(index, tick);
+            json!({ "stamp_ns": t["stamp_ns"], "world_from_object": t["world_from_object"],
+                    "translation_std_m": t["translation_std_m"], "rotation_entropy": t["rotation_entropy"],
+                    "status": t["status"], "truth": t["truth"] })
+        })
+        .collect();
+    Json(Value::Array(points)).into_response()
+}
+
+async fn mesh(Path(id): Path<String>) -> Response {
     let Some(&(_, _, name, _)) = OBJECTS.iter().find(|o| o.1 == id) else {
         return StatusCode::NOT_FOUND.into_response();
     };
@@ -235,8 +252,8 @@ async fn camera_latest(State(m): State<Mock>, Path(id): Path<String>) -> Respons
     Json(json!({
         "stamp_ns": tick as i64 * 100_000_000,
         "detections": [
-            { "object": "mustard_bottle", "bbox_xywh_px": [300.0, 180.0, 90.0, 140.0], "score": 0.93 },
-            { "object": "tomato_can", "bbox_xywh_px": [180.0, 220.0, 70.0, 80.0], "score": 0.81 },
+            { "object": "obj_000005", "bbox_xywh_px": [300.0, 180.0, 90.0, 140.0], "score": 0.93 },
+            { "object": "obj_000003", "bbox_xywh_px": [180.0, 220.0, 70.0, 80.0], "score": 0.81 },
         ],
     }))
     .into_response()
