@@ -34,6 +34,7 @@ const FRUSTUM_DEPTH_M = 0.12;
 const TABLE_HALF_SIZE_M = 0.8;
 const TABLE_CELL_M = 0.1;
 const GRIPPER_FINGER_M = 0.05;
+const DRIVER_MIN_CORRELATION = 0.2;
 const GRIPPER_MARGIN_M = 0.01;
 
 const state = {
@@ -59,6 +60,11 @@ const colors = {
     if (!state.cameraColorIndex.has(id)) state.cameraColorIndex.set(id, state.cameraColorIndex.size);
     return CAMERA_COLORS[state.cameraColorIndex.get(id) % CAMERA_COLORS.length];
   },
+  /** Display name of an object id (from the tracks), for detection labels. */
+  objectLabel(objectId) {
+    for (const t of state.tracks.values()) if (String(t.object_id) === String(objectId)) return t.object_name ?? objectId;
+    return objectId;
+  },
   objectCss(name) {
     if (!state.objectColorIndex.has(name)) state.objectColorIndex.set(name, state.objectColorIndex.size);
     return OBJECT_COLORS[state.objectColorIndex.get(name) % OBJECT_COLORS.length];
@@ -77,6 +83,7 @@ let view = null;
 try {
   view = new View3D(el("view3d"), el("view3d-labels"));
   view.onFit = () => fitView(true);
+  document.body.dataset.renderer = view.renderer;
 } catch (e) {
   el("view-error").hidden = false;
   el("view-error").textContent = `3D view unavailable: ${e.message}`;
@@ -375,9 +382,19 @@ function mainReason(d) {
   const text = best.message ?? best.description ?? best.text ?? best.summary ?? best.detail;
   const name = best.test ?? best.kind ?? best.name ?? best.reason ?? best.type;
   const pct = share(best) > 0 ? ` (${(share(best) * 100).toFixed(0)} %)` : "";
-  if (text) return `${text}${pct}`;
+  if (text) return text; // the service's message already states the share
   if (name) return `${typeof name === "string" ? name : JSON.stringify(name)}${pct}`;
   return JSON.stringify(best).slice(0, 120);
+}
+
+/** The pose axis whose spread correlates most with failing (decision.uncertainty[0]). */
+function mainDriver(d) {
+  const u = Array.isArray(d?.uncertainty) ? d.uncertainty[0] : null;
+  if (!u || !(Number(u.failure_correlation) >= DRIVER_MIN_CORRELATION)) return "";
+  const motion = typeof u.motion === "string" ? u.motion.toLowerCase() : "";
+  const rotational = motion.startsWith("rot");
+  const spread = rotational ? `${fmt((u.spread * 180) / Math.PI, 1)}°` : `${fmt(u.spread * 1000, 1)} mm`;
+  return `${motion || "offset"} ${rotational ? "about" : "along"} ${u.axis} (spread ${spread}, correlation ${fmt(u.failure_correlation, 2)})`;
 }
 
 function fmt(v, digits = 3) {
@@ -423,6 +440,13 @@ function renderTrackList(tracks) {
         const r = document.createElement("div");
         r.className = "reason";
         r.textContent = `Main reason: ${reason}`;
+        li.append(r);
+      }
+      const driver = mainDriver(d);
+      if (driver) {
+        const r = document.createElement("div");
+        r.className = "reason muted";
+        r.textContent = `Look more along: ${driver}`;
         li.append(r);
       }
     }

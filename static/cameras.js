@@ -10,7 +10,7 @@ const FRAME_HEIGHT_PX = 190; // matches .camera-frame in style.css
 export class CameraPanel {
   constructor(container, camera, colors) {
     this.camera = camera; // scene camera entry
-    this.colors = colors; // { cameraCss(id), objectCss(name) }
+    this.colors = colors; // { cameraCss(id), objectCss(objectId), objectLabel(objectId) }
     this.kind = "depth";
     this.detections = [];
     this.lastLoadMs = 0;
@@ -153,7 +153,7 @@ export class CameraPanel {
       const color = this.colors.objectCss(d.object);
       ctx.strokeStyle = color;
       ctx.strokeRect(b[0] * s, b[1] * s, b[2] * s, b[3] * s);
-      const text = `${d.object} ${Number(d.score ?? 0).toFixed(2)}`;
+      const text = `${this.colors.objectLabel(d.object)} ${Number(d.score ?? 0).toFixed(2)}`;
       const tw = ctx.measureText(text).width;
       ctx.fillStyle = "rgba(0,0,0,0.65)";
       ctx.fillRect(b[0] * s, b[1] * s - 14 * dpr, tw + 4 * dpr, 14 * dpr);

@@ -40,6 +40,23 @@ fn page_weight_bytes() -> u64 {
         .sum()
 }
 
+/// Pixels of the 3D view brighter than its background (copied through a 2D canvas, so it works
+/// for the WebGL and the Canvas 2D renderer alike).
+async fn lit_pixels_3d(page: &mut Page) -> f64 {
+    page.eval(
+        "(() => { const c = document.getElementById('view3d');
+           const t = document.createElement('canvas'); t.width = c.width; t.height = c.height;
+           const x = t.getContext('2d'); x.drawImage(c, 0, 0);
+           const px = x.getImageData(0, 0, t.width, t.height).data;
+           let n = 0; for (let i = 0; i < px.length; i += 4) if (px[i] > 60 || px[i+1] > 60 || px[i+2] > 60) n++;
+           return n; })()",
+    )
+    .await
+    .expect("read 3D pixels")
+    .as_f64()
+    .unwrap_or(0.0)
+}
+
 async fn body_number(page: &mut Page, key: &str) -> f64 {
     let v = page
         .eval(&format!("Number(document.body.dataset.{key} ?? 0)"))
@@ -103,20 +120,13 @@ async fn check_live_dashboard(page: &mut Page, base_url: &str) {
     .await
     .expect("plot has data");
     // The 3D canvas really has non-background pixels where drawing happened.
-    let lit = page
-        .eval(
-            "(() => { const c = document.getElementById('view3d'); const gl = c.getContext('webgl');
-               const px = new Uint8Array(c.width * c.height * 4);
-               gl.readPixels(0, 0, c.width, c.height, gl.RGBA, gl.UNSIGNED_BYTE, px);
-               let n = 0; for (let i = 0; i < px.length; i += 4) if (px[i] > 60 || px[i+1] > 60 || px[i+2] > 60) n++;
-               return n; })()",
-        )
+    let lit = lit_pixels_3d(page).await;
+    assert!(lit > 500.0, "3D view drew almost nothing: {lit} lit pixels");
+    let renderer = page
+        .eval("document.body.dataset.renderer")
         .await
-        .expect("read 3D pixels");
-    assert!(
-        lit.as_f64().unwrap_or(0.0) > 500.0,
-        "3D view drew almost nothing: {lit} lit pixels"
-    );
+        .expect("renderer hook");
+    eprintln!("3D renderer: {renderer}");
     let errors = page
         .eval("document.documentElement.dataset.jsErrors ?? ''")
         .await
@@ -189,6 +199,38 @@ async fn dashboard_shows_live_mock_service_and_reconnects() {
 
     let shot = target_dir().join("dashboard-screenshot-mock.png");
     let bytes = page.screenshot(&shot).await.expect("screenshot");
+    let reason = page
+        .eval("document.querySelector('.track .reason').textContent")
+        .await
+        .expect("reason");
+    assert!(
+        reason
+            .as_str()
+            .is_some_and(|r| r.starts_with("Main reason: ") && r.contains("% of samples")),
+        "main reason shown from decision.reasons: {reason}"
+    );
+
+    // Without WebGL the Canvas 2D fallback draws the same scene.
+    page.navigate(&format!("{base_url}/?renderer=canvas2d"))
+        .await
+        .expect("reload with canvas2d");
+    page.wait_for(
+        "document.body.dataset.renderer === 'canvas2d'",
+        WAIT,
+        "the Canvas 2D renderer",
+    )
+    .await
+    .expect("fallback");
+    page.wait_for(
+        "Number(document.body.dataset.particlesDrawn) > 0",
+        WAIT,
+        "particles drawn by the fallback",
+    )
+    .await
+    .expect("fallback draws particles");
+    let lit = lit_pixels_3d(page).await;
+    assert!(lit > 500.0, "Canvas 2D fallback drew almost nothing: {lit} lit pixels");
+
     let weight = page_weight_bytes();
     eprintln!(
         "dashboard (mock service): page weight {weight} B, update rate seen by the page {rate:.1} events/s, \

@@ -158,17 +158,28 @@ fn track_view(index: usize, tick: u64) -> Value {
         Vector3::new(0.0, 0.0, 0.02),
         Vector3::new(std::f64::consts::FRAC_PI_2, 0.0, 0.0),
     );
+    // Poses inside the decision come as nalgebra serialises them (the grasp module's types).
+    let na_pose = |p: &Isometry3<f64>| serde_json::to_value(p).expect("pose json");
+    let failing = 1.0 - p_success;
     let decision = json!({
         "decision": if p_success >= 0.8 { "grasp" } else { "observe" },
         "p_success": p_success,
         "ci95": [(p_success - 0.05).max(0.0), (p_success + 0.05).min(1.0)],
         "n_samples": 200, "effective_sample_size": 180.0, "threshold": 0.8,
-        "grasp": { "object_from_gripper": pose_json(&object_from_gripper) },
-        "reference_from_gripper": pose_json(&(reference_from_object * object_from_gripper)),
+        "grasp": { "object_from_gripper": na_pose(&object_from_gripper), "approach_in_object": [0.0, -1.0, 0.0],
+                   "closing_in_object": [1.0, 0.0, 0.0], "depth_m": 0.02, "width_m": 0.07, "label": "approach -a1, close a0" },
+        "reference_from_gripper": na_pose(&(reference_from_object * object_from_gripper)),
         "reasons": [
-            { "test": "finger collision", "share": 0.6 * (1.0 - p_success) },
-            { "test": "object outside the closing region", "share": 0.4 * (1.0 - p_success) },
+            { "test": "contact", "failure_share": 0.6 * failing, "drivers": [],
+              "message": format!("{:.1}% of samples: a pad misses the object", 60.0 * failing) },
+            { "test": "approach", "failure_share": 0.4 * failing, "drivers": [],
+              "message": format!("{:.1}% of samples: the open gripper hits the object", 40.0 * failing) },
         ],
+        "uncertainty": [
+            { "motion": "translation", "axis": "gripper_x", "axis_in_reference": [1.0, 0.0, 0.0],
+              "spread": std_m, "failure_correlation": 0.55 },
+        ],
+        "candidates": [],
     });
     json!({
         "id": id, "object_id": object_id, "object_name": name,
