@@ -49,7 +49,6 @@ const state = {
   eventTimes: [],
   stats: null,
   panels: new Map(), // camera id -> CameraPanel
-  fittedOnce: false,
   connects: 0,
   trackUpdates: 0,
   historyLoaded: new Set(),
@@ -113,6 +112,11 @@ async function getJson(path) {
 async function refreshScene() {
   try {
     state.scene = await getJson("/api/v1/scene");
+    // Camera colours follow the scene's camera order, whatever arrived first.
+    const known = [...state.cameraColorIndex.keys()];
+    state.cameraColorIndex.clear();
+    for (const id of [...(state.scene.cameras ?? []).map((c) => c.id), ...known]) colors.cameraCss(id);
+    for (const panel of state.panels.values()) panel.updateCaption();
     for (const cam of state.scene.cameras ?? []) {
       colors.cameraCss(cam.id);
       let panel = state.panels.get(cam.id);
@@ -357,7 +361,8 @@ function render() {
       document.body.dataset.particlesDrawn = String(Math.min(particles, view.drawnPoints));
     };
     view.setGeometry(geometry);
-    if (!state.fittedOnce && (tracks.length || state.scene)) fitView(false);
+    // Follow the scene until the user takes the camera (then double click fits again).
+    if (tracks.length || state.scene) fitView(false);
   }
   let maxPoints = 0;
   for (const p of Object.values(plots)) {
@@ -525,14 +530,13 @@ function sceneCenterAndRadius(tracks) {
   const centerOf = (pts) => [0, 1, 2].map((i) => pts.reduce((s, p) => s + p[i], 0) / pts.length);
   const c = centerOf(objects.length ? objects : all);
   const far = Math.max(...all.map((p) => Math.hypot(p[0] - c[0], p[1] - c[1], p[2] - c[2])));
-  return { c, r: Math.max(0.3, objects.length ? far * 0.7 : far) };
+  return { c, r: Math.max(0.3, far) };
 }
 
 function fitView(force) {
   const cr = sceneCenterAndRadius([...state.tracks.values()]);
   if (!cr || !view) return;
   view.fit(cr.c, cr.r, force);
-  state.fittedOnce = true;
 }
 
 function meshWire(g, mesh, pose, color) {

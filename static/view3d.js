@@ -111,7 +111,7 @@ export class View3D {
   fit(center, radiusM, force = false) {
     if (this.userMoved && !force) return;
     this.orbit.target = center.slice();
-    this.orbit.distanceM = Math.max(0.3, radiusM * 1.7);
+    this.orbit.distanceM = Math.max(0.3, radiusM * 1.9);
     this.requestDraw();
   }
 

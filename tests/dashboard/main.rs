@@ -210,6 +210,26 @@ async fn dashboard_shows_live_mock_service_and_reconnects() {
         "main reason shown from decision.reasons: {reason}"
     );
 
+    // A 1366x768 laptop screen: everything fits without horizontal scrolling.
+    page.call(
+        "Emulation.setDeviceMetricsOverride",
+        serde_json::json!({ "width": 1366, "height": 768, "deviceScaleFactor": 1, "mobile": false }),
+    )
+    .await
+    .expect("resize");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let overflow = page
+        .eval("document.documentElement.scrollWidth - window.innerWidth")
+        .await
+        .expect("layout width");
+    assert!(
+        overflow.as_f64().unwrap_or(1.0) <= 0.0,
+        "page wider than a 1366 px screen by {overflow} px"
+    );
+    page.screenshot(&target_dir().join("dashboard-screenshot-mock-1366x768.png"))
+        .await
+        .expect("laptop screenshot");
+
     // Without WebGL the Canvas 2D fallback draws the same scene.
     page.navigate(&format!("{base_url}/?renderer=canvas2d"))
         .await
