@@ -30,6 +30,8 @@ const AXIS_COLORS = [OKABE.vermillion, OKABE.green, OKABE.sky]; // x, y, z
 const EVENT_RATE_WINDOW_MS = 10_000;
 const SCENE_REFRESH_MS = 500;
 const TRACKS_RESYNC_MS = 5_000;
+const MIN_RENDER_INTERVAL_MS = 100;
+const MIN_LIST_INTERVAL_MS = 250;
 const FRUSTUM_DEPTH_M = 0.12;
 const TABLE_HALF_SIZE_M = 0.8;
 const TABLE_CELL_M = 0.1;
@@ -336,13 +338,23 @@ function connect() {
 // ---- rendering ----------------------------------------------------------------------------
 
 let renderPending = false;
+let lastRenderMs = -Infinity;
+let lastListMs = -Infinity;
+/** Coalesces events into at most one redraw per MIN_RENDER_INTERVAL_MS (the service may publish
+ *  far faster than a person reads; a software-rendered browser should not eat a core). */
 function scheduleRender() {
   if (renderPending) return;
   renderPending = true;
-  requestAnimationFrame(() => {
-    renderPending = false;
-    render();
-  });
+  const wait = Math.max(0, MIN_RENDER_INTERVAL_MS - (performance.now() - lastRenderMs));
+  setTimeout(
+    () =>
+      requestAnimationFrame(() => {
+        renderPending = false;
+        lastRenderMs = performance.now();
+        render();
+      }),
+    wait,
+  );
 }
 
 function render() {
@@ -352,7 +364,14 @@ function render() {
   const sel = state.tracks.get(state.selected);
   const selDecision = sel?.decision ?? tracks.find((t) => t.decision)?.decision;
   document.body.dataset.decision = selDecision ? verdictOf(selDecision) : "";
-  renderTrackList(tracks);
+  // The list is rebuilt at a calmer rate so that clicks on it are not lost mid-rebuild.
+  const now = performance.now();
+  if (now - lastListMs >= MIN_LIST_INTERVAL_MS || tracks.length !== el("track-list").childElementCount) {
+    lastListMs = now;
+    renderTrackList(tracks);
+  } else {
+    setTimeout(scheduleRender, MIN_LIST_INTERVAL_MS);
+  }
   renderLegend();
   renderStats();
   if (view) {
@@ -474,7 +493,11 @@ function renderTrackList(tracks) {
   list.replaceChildren(...items);
 }
 
+let legendKey = "";
 function renderLegend() {
+  const key = (state.scene?.cameras ?? []).map((c) => `${c.id}:${c.mount}:${colors.cameraCss(c.id)}`).join(",");
+  if (key === legendKey && el("legend").childElementCount) return;
+  legendKey = key;
   const entries = [];
   for (const cam of state.scene?.cameras ?? []) {
     entries.push([colors.cameraCss(cam.id), `camera ${cam.id} (${cam.mount}): frustum + its particles`]);

@@ -127,6 +127,7 @@ export class View3D {
 
   clipFromWorld() {
     const o = this.orbit;
+    this.canvas.dataset.orbit = `${o.yawRad.toFixed(3)} ${o.pitchRad.toFixed(3)} ${o.distanceM.toFixed(3)}`;
     const cp = Math.cos(o.pitchRad);
     const eye = [
       o.target[0] + o.distanceM * cp * Math.cos(o.yawRad),

@@ -210,6 +210,51 @@ async fn dashboard_shows_live_mock_service_and_reconnects() {
         "main reason shown from decision.reasons: {reason}"
     );
 
+    // Clicking the second object selects it; dragging and the wheel move the 3D camera.
+    page.eval("document.querySelectorAll('.track')[1].click()")
+        .await
+        .expect("click track");
+    page.wait_for(
+        "document.querySelector('.track.selected')?.dataset.trackId === '2'",
+        WAIT,
+        "the clicked track to be selected",
+    )
+    .await
+    .expect("selection");
+    let orbit_before = page
+        .eval("document.getElementById('view3d').dataset.orbit")
+        .await
+        .expect("orbit");
+    let (x, y) = (700.0, 300.0);
+    for (kind, dx, buttons) in [
+        ("mousePressed", 0.0, 1),
+        ("mouseMoved", 40.0, 1),
+        ("mouseMoved", 120.0, 1),
+        ("mouseReleased", 120.0, 0),
+    ] {
+        page.call(
+            "Input.dispatchMouseEvent",
+            serde_json::json!({ "type": kind, "x": x + dx, "y": y, "button": "left", "buttons": buttons, "clickCount": 1 }),
+        )
+        .await
+        .expect("mouse event");
+    }
+    page.call(
+        "Input.dispatchMouseEvent",
+        serde_json::json!({ "type": "mouseWheel", "x": x, "y": y, "deltaX": 0, "deltaY": 300 }),
+    )
+    .await
+    .expect("wheel");
+    let orbit_after = page
+        .wait_for(
+            &format!("(() => {{ const o = document.getElementById('view3d').dataset.orbit; return o !== {orbit_before} ? o : null; }})()"),
+            WAIT,
+            "the orbit camera to move",
+        )
+        .await
+        .expect("orbit moved");
+    eprintln!("orbit (yaw pitch distance): {orbit_before} -> {orbit_after}");
+
     // A 1366x768 laptop screen: everything fits without horizontal scrolling.
     page.call(
         "Emulation.setDeviceMetricsOverride",
