@@ -171,14 +171,22 @@ async fn dashboard_shows_live_mock_service_and_reconnects() {
     // The mock sends 6 events per 100 ms tick (60/s); the page must keep up with most of it.
     assert!(rate > 20.0, "page handled only {rate:.1} events/s from the mock's 60/s");
 
-    // Drop the event stream: the page shows it and reconnects by itself.
+    // Drop the event stream and refuse new ones for 3 s: the page shows the lost connection
+    // and reconnects by itself once the service is back.
     let connects_before = body_number(page, "connects").await;
     let client = reqwest::Client::new();
     client
-        .post(format!("{base_url}/mock/drop"))
+        .post(format!("{base_url}/mock/drop?down_ms=3000"))
         .send()
         .await
         .expect("drop streams");
+    page.wait_for(
+        "document.body.dataset.connection === 'reconnecting' && document.getElementById('connection').textContent.includes('lost')",
+        WAIT,
+        "the page to show the lost connection",
+    )
+    .await
+    .expect("lost connection shown");
     page.wait_for(
         &format!(
             "Number(document.body.dataset.connects) > {connects_before} && document.body.dataset.connection === 'live'"

@@ -6,11 +6,12 @@
 use std::convert::Infallible;
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use axum::Json;
 use axum::Router;
-use axum::extract::{Path, State};
+use axum::extract::{Path, Query, State};
 use axum::http::{StatusCode, header};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
@@ -33,6 +34,8 @@ const OBJECTS: [(u64, &str, &str, [f64; 3]); 2] = [
 struct Mock {
     started: Instant,
     drop_streams: watch::Sender<u64>,
+    /// While set and in the future, `/api/v1/events` answers 503 (the service "is down").
+    down_until: Arc<Mutex<Option<Instant>>>,
 }
 
 impl Mock {
@@ -51,6 +54,7 @@ pub async fn spawn() -> MockServer {
     let mock = Mock {
         started: Instant::now(),
         drop_streams,
+        down_until: Arc::new(Mutex::new(None)),
     };
     let app = Router::new()
         .route("/healthz", get(|| async { "ok" }))
@@ -289,12 +293,29 @@ async fn camera_image(Path((id, file)): Path<(String, String)>) -> Response {
     ([(header::CONTENT_TYPE, "image/png")], png).into_response()
 }
 
-async fn drop_streams_handler(State(m): State<Mock>) -> StatusCode {
+#[derive(serde::Deserialize)]
+struct DropQuery {
+    /// Refuse new event streams for this long after dropping the open ones.
+    down_ms: Option<u64>,
+}
+
+async fn drop_streams_handler(State(m): State<Mock>, Query(q): Query<DropQuery>) -> StatusCode {
+    if let Some(ms) = q.down_ms {
+        *m.down_until.lock().expect("lock") = Some(Instant::now() + Duration::from_millis(ms));
+    }
     m.drop_streams.send_modify(|g| *g += 1);
     StatusCode::NO_CONTENT
 }
 
-async fn events(State(m): State<Mock>) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
+async fn events(State(m): State<Mock>) -> Response {
+    let down = m.down_until.lock().expect("lock").is_some_and(|t| Instant::now() < t);
+    if down {
+        return StatusCode::SERVICE_UNAVAILABLE.into_response();
+    }
+    event_stream(m).into_response()
+}
+
+fn event_stream(m: Mock) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
     let mut dropped = m.drop_streams.subscribe();
     dropped.mark_unchanged();
     let mut interval = tokio::time::interval(TICK);
