@@ -20,6 +20,10 @@ const WAIT: Duration = Duration::from_secs(60);
 /// All of static/ together must stay small (no frameworks): a budget, not a measurement.
 const PAGE_WEIGHT_BUDGET_BYTES: u64 = 200 * 1024;
 
+/// One browser test at a time: each starts Chromium (and the demo its server) on a 2-core
+/// machine, and the measured update rates should not depend on the other test.
+static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
 fn target_dir() -> PathBuf {
     // CARGO_TARGET_TMPDIR is <target>/tmp.
     Path::new(env!("CARGO_TARGET_TMPDIR"))
@@ -136,6 +140,7 @@ async fn check_live_dashboard(page: &mut Page, base_url: &str) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn dashboard_shows_live_mock_service_and_reconnects() {
+    let _one = ONE_AT_A_TIME.lock().await;
     let server = mock::spawn().await;
     let base_url = format!("http://{}", server.addr);
     let mut browser = Browser::launch(WIDTH_PX, HEIGHT_PX).await.expect("launch Chromium");
@@ -384,6 +389,7 @@ impl DemoServer {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "waits for `pregrasp serve --demo` from the api branch"]
 async fn dashboard_follows_pregrasp_serve_demo() {
+    let _one = ONE_AT_A_TIME.lock().await;
     let server = DemoServer::start().await;
     let mut browser = Browser::launch(WIDTH_PX, HEIGHT_PX).await.expect("launch Chromium");
     let page = &mut browser.page;
