@@ -1,1 +1,104 @@
-//! (being built)
+//! Grasp or observe: will the planned grasp work on the tracked pose distribution?
+//!
+//! The decision plans a parallel-jaw grasp on the current pose estimate and replays it on
+//! object poses drawn from the tracked distribution (`crate::geometry::PoseSamples`). Every
+//! sample is checked with parry3d against solid shapes (the object's convex hull or convex
+//! decomposition) and the support plane:
+//!
+//! - `approach`: the open gripper (palm and both fingers) is swept from the pre-grasp pose along
+//!   its approach axis (+z of the gripper frame) to the grasp pose without touching the object;
+//! - `table`: palm and fingers keep a clearance above the support plane at both ends of the
+//!   sweep (the motion is linear, so both ends bound the whole sweep);
+//! - `contact`: closing the fingers along the closing axis (x) brings both pads onto the object
+//!   (the object spans the closing region, within the stroke), before any other part of the
+//!   finger touches it;
+//! - `alignment`: the contacts lie inside the capture funnel of the pads (the V-groove and
+//!   chamfers of [`PadGeometry`]), so that closing pushes the object into the aligned pose.
+//!
+//! Frames: every query is evaluated in the gripper frame of the planned grasp
+//! (`gripper_from_object = reference_from_gripper^-1 * reference_from_object`). The gripper
+//! frame has its origin at the tool centre point (the middle between the pad centres), x along
+//! the closing axis, z along the approach axis (from the palm towards the finger tips).
+//! nalgebra is our maths; parry3d (glam, f32) is only spoken inside [`convert`].
+//!
+//! Files: `gripper.rs` (the gripper model and its JSON), `object.rs` (solid shapes, cached per
+//! mesh content hash), `candidates.rs` (grasps and their generation), `decision.rs` (the
+//! per-sample tests, the decision and its reasons), `calibration.rs` (predicted vs observed),
+//! `view.rs` (next-best-view suggestion).
+
+pub mod calibration;
+pub mod candidates;
+pub mod convert;
+pub mod decision;
+pub mod gripper;
+pub mod object;
+pub mod view;
+
+pub use calibration::{CalibrationRecord, CalibrationReport, ReliabilityBin, calibration_report};
+pub use candidates::{Grasp, generate_candidates};
+pub use decision::{
+    AxisDriver, Decision, DecisionQuery, FailureTest, Motion, PoseOutcome, RankedGrasp, Reason,
+    Verdict, decide, evaluate_pose, success_on_pose, wilson_interval,
+};
+pub use gripper::{Gripper, PadGeometry};
+pub use object::{GraspObject, SolidKind};
+pub use view::{CandidateView, ViewSuggestion, suggest_view};
+
+use serde::{Deserialize, Serialize};
+
+/// Errors of the grasp module.
+#[derive(Debug, thiserror::Error)]
+pub enum GraspError {
+    #[error("invalid gripper: {0}")]
+    InvalidGripper(String),
+    #[error("gripper JSON: {0}")]
+    GripperJson(#[from] serde_json::Error),
+    #[error("reading gripper file {path}: {source}")]
+    GripperFile {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("invalid object mesh: {0}")]
+    InvalidMesh(String),
+    #[error("invalid query: {0}")]
+    InvalidQuery(String),
+    #[error("no pose samples given")]
+    NoSamples,
+    #[error("no grasp candidate of the gripper fits the object: {0}")]
+    NoCandidate(String),
+    #[error("geometry query unsupported by parry3d: {0}")]
+    Unsupported(String),
+}
+
+/// The plane the object stands on (the table), in the frame of the samples. `normal` points
+/// away from the table (into the free space); it need not be unit length.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SupportPlane {
+    pub normal: [f64; 3],
+    pub point_m: [f64; 3],
+}
+
+impl SupportPlane {
+    /// Unit normal and point, or an error for a zero or non-finite normal.
+    pub fn unit(&self) -> Result<(nalgebra::Vector3<f64>, nalgebra::Point3<f64>), GraspError> {
+        let n = nalgebra::Vector3::from(self.normal);
+        let p = nalgebra::Point3::from(self.point_m);
+        let norm = n.norm();
+        if !norm.is_finite() || norm < 1e-9 || !p.coords.iter().all(|x| x.is_finite()) {
+            return Err(GraspError::InvalidQuery(format!(
+                "support plane needs a finite non-zero normal and a finite point, got {self:?}"
+            )));
+        }
+        Ok((n / norm, p))
+    }
+
+    /// The same plane expressed in another frame: `target_from_source * self`.
+    pub fn transformed(&self, target_from_source: &crate::geometry::Pose) -> SupportPlane {
+        let n = target_from_source.rotation * nalgebra::Vector3::from(self.normal);
+        let p = target_from_source * nalgebra::Point3::from(self.point_m);
+        SupportPlane {
+            normal: [n.x, n.y, n.z],
+            point_m: [p.x, p.y, p.z],
+        }
+    }
+}

@@ -1,1 +1,195 @@
-//! (being built)
+//! The multi-view Rao-Blackwellized particle filter (the seed paper, section IV).
+//!
+//! Files:
+//! - [`bins`]: fast operations on the rotation grid: Euler angles of a rotation, one *bin map*
+//!   per view and step (pull re-binning), the wrap-around separable blur, volume weights.
+//! - [`encoder`]: the crop features and the default encoder (PCA + ridge-regression denoising),
+//!   behind the [`encoder::Encoder`] trait.
+//! - [`codebook`]: templates rendered at every viewpoint, in-plane bins by 2-D rotation,
+//!   encoded and cached on disk.
+//! - [`observation`]: crops around projected particles, matching (chunked GEMM), likelihoods.
+//! - [`motion`]: Brownian object motion and the odometry motion model of the robot camera.
+//! - [`estimate`]: mean pose, components, rotation modes, covariance, samples.
+//! - [`filter`]: the [`Tracker`] itself.
+//! - [`raster`]: a small CPU z-buffer rasteriser (codebooks and tests without a GPU renderer).
+//!
+//! # Where the state lives
+//! As in the paper, particles and histograms live in the *reference* frame (the robot camera,
+//! or the stationary reference camera of a rig without one). The grasp decision consumes the
+//! distribution in that frame directly, and the odometry noise enters the motion model
+//! (Eq. 3) where it belongs. The price is one re-binning of the rotation prior per step when
+//! the robot camera rotates: that is the same pull-map machinery as the fusion of views (one
+//! bin map per step, shared by all particles of an object), a few milliseconds.
+//!
+//! Histograms are allocentric with respect to each particle's ray in the reference camera.
+
+pub mod bins;
+pub mod codebook;
+pub mod encoder;
+pub mod estimate;
+pub mod filter;
+pub mod motion;
+pub mod observation;
+pub mod raster;
+
+use crate::camera::{ColorImage, DepthImage, Intrinsics};
+use crate::geometry::Pose;
+use serde::{Deserialize, Serialize};
+
+pub use codebook::{Codebook, CodebookConfig};
+pub use encoder::{Encoder, LinearDenoisingEncoder};
+pub use filter::{Tracker, TrackerConfig};
+
+/// Errors of the tracker module.
+#[derive(Debug, thiserror::Error)]
+pub enum TrackerError {
+    #[error("render failed: {0}")]
+    Render(String),
+    #[error("codebook cache i/o: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("codebook cache file {path} is invalid: {why}")]
+    BadCache { path: String, why: String },
+    #[error("bad configuration: {0}")]
+    Config(String),
+    #[error("unknown camera {0:?} (not in the rig given to Tracker::new)")]
+    UnknownCamera(String),
+    #[error("numerical failure: {0}")]
+    Numerical(String),
+    #[error("image of camera {camera} is {got_w}x{got_h}, intrinsics say {want_w}x{want_h}")]
+    ImageSize {
+        camera: String,
+        got_w: u32,
+        got_h: u32,
+        want_w: u32,
+        want_h: u32,
+    },
+}
+
+/// A 2-D detection of one object model in one image.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Detection {
+    /// Model name (as given to [`Tracker::add_object_model`]).
+    pub object: String,
+    /// `[x, y, width, height]` in pixels.
+    pub bbox_xywh_px: [f64; 4],
+    pub score: f64,
+}
+
+/// One camera's frame at one time.
+#[derive(Debug, Clone)]
+pub struct CameraFrame {
+    pub camera: String,
+    pub stamp_ns: i64,
+    pub intrinsics: Intrinsics,
+    pub depth: DepthImage,
+    pub color: Option<ColorImage>,
+    pub detections: Vec<Detection>,
+}
+
+/// How a camera is mounted.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub enum CameraMount {
+    Stationary { world_from_camera: Pose },
+    Robot { base_from_camera: Pose },
+}
+
+/// Odometry of the robot at one time (the robot camera's pose is
+/// `world_from_odom * odom_from_base * base_from_camera`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct RobotOdometry {
+    pub stamp_ns: i64,
+    pub odom_from_base: Pose,
+    pub world_from_odom: Pose,
+    pub base_from_camera: Pose,
+}
+
+/// Status of a track.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TrackStatus {
+    Initialising,
+    Tracking,
+    Lost,
+}
+
+/// One tracked object instance.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Track {
+    pub id: u64,
+    /// Model name.
+    pub object: String,
+    pub status: TrackStatus,
+    /// Stamp of the last step that updated the track.
+    pub stamp_ns: i64,
+    /// Best absolute cosine similarity of the last step over all views (NaN when unseen).
+    pub best_similarity: f64,
+    /// Steps in a row whose evidence was below the lost threshold.
+    pub weak_steps: u32,
+    /// Cameras that gave evidence in the last step.
+    pub seen_by: Vec<String>,
+}
+
+/// One component of the translation mixture (Eq. 2): the particles of one source camera.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Component {
+    pub camera: String,
+    pub weight: f64,
+    pub mean_m: [f64; 3],
+    pub covariance_m2: [[f64; 3]; 3],
+}
+
+/// A mode of the rotation distribution (reference frame `reference_from_object` rotation).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RotationMode {
+    pub rotation_xyzw: [f64; 4],
+    pub mass: f64,
+}
+
+/// The estimate of one track, in the reference frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Estimate {
+    pub reference_from_object: Pose,
+    /// RMS distance of the particles from their weighted mean.
+    pub translation_std_m: f64,
+    pub components: Vec<Component>,
+    pub rotation_modes: Vec<RotationMode>,
+    /// Shannon entropy (nats) of the particle-weighted mixture histogram over bins.
+    pub rotation_entropy: f64,
+    /// Order: translation x, y, z (m), rotation vector x, y, z (rad) about the mean.
+    pub covariance_6x6: [[f64; 6]; 6],
+    pub status: TrackStatus,
+    pub stamp_ns: i64,
+}
+
+/// One particle as seen from outside.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ParticleView {
+    pub position_in_reference_m: [f64; 3],
+    pub camera: String,
+    pub weight: f64,
+}
+
+/// Per-stage timings and what happened in one step.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct StepReport {
+    pub stamp_ns: i64,
+    pub tracks_created: Vec<u64>,
+    pub tracks_reinitialised: Vec<u64>,
+    pub tracks_lost: Vec<u64>,
+    pub timings: StageTimings,
+}
+
+/// Seconds spent per stage in one step (summed over objects).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct StageTimings {
+    pub motion_s: f64,
+    pub crops_s: f64,
+    pub encoding_s: f64,
+    pub matching_s: f64,
+    pub likelihoods_s: f64,
+    pub fusion_s: f64,
+    pub blur_s: f64,
+    pub resampling_s: f64,
+    pub estimates_s: f64,
+    pub total_s: f64,
+}

@@ -1,5 +1,8 @@
 //! (being built) The scene generator.
 
+pub mod plan;
+pub mod raster;
+
 pub mod cli {
     /// Options of `pregrasp generate`.
     #[derive(Debug, clap::Args)]

@@ -1,0 +1,569 @@
+//! Codebooks: the codes of the object's appearance at every bin of the rotation grid.
+//!
+//! Only the `n_elevation x n_azimuth` viewpoints are rendered (object centred at
+//! `render_distance_m`, square `render_px` images); the in-plane bins are 2-D rotations of the
+//! centred crop (see [`crate::geometry`]: `R(e, a, theta) = Rz(theta) * V(e, a)^T`, so the
+//! image at `theta` is the image at 0 rotated by `theta` about the centre).
+//!
+//! # Cache
+//! One file per (mesh content, grid, encoder version, config): magic, format version, a JSON
+//! header with the key, the payload (encoder and codes, little-endian f32) and a SHA-256 of
+//! everything before it. A file whose checksum, header or key does not match is rebuilt.
+
+use crate::camera::{ColorImage, DepthImage, Intrinsics};
+use crate::geometry::{Pose, RotationGrid};
+use crate::mesh::Mesh;
+use crate::tracker::TrackerError;
+use crate::tracker::encoder::{
+    CropParams, ENCODER_VERSION, Encoder, FeatureLayout, LinearDenoisingEncoder, normalise_rows, sample_crop,
+};
+use nalgebra::{Translation3, UnitQuaternion};
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, Normal};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+const MAGIC: &[u8; 8] = b"PGCODEBK";
+const FORMAT_VERSION: u32 = 1;
+
+/// How a codebook is built.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CodebookConfig {
+    /// Feature grid side (depth); colour uses half of it.
+    pub feature_px: usize,
+    /// Side of the rendered template images.
+    pub render_px: usize,
+    /// Distance of the object centre from the template camera.
+    pub render_distance_m: f64,
+    /// Crop side = `crop_margin * diameter`.
+    pub crop_margin: f64,
+    pub code_dim: usize,
+    pub use_color: bool,
+    pub color_weight: f32,
+    /// Corrupted training crops for the ridge regression.
+    pub n_train: usize,
+    pub ridge_lambda_rel: f64,
+    pub seed: u64,
+}
+
+impl Default for CodebookConfig {
+    fn default() -> Self {
+        Self {
+            feature_px: 32,
+            render_px: 64,
+            render_distance_m: 1.0,
+            crop_margin: 1.2,
+            code_dim: 128,
+            use_color: true,
+            color_weight: 0.7,
+            n_train: 12_000,
+            ridge_lambda_rel: 0.01,
+            seed: 7,
+        }
+    }
+}
+
+impl CodebookConfig {
+    /// Small and fast (tests, a first codebook while the full one builds).
+    pub fn coarse() -> Self {
+        Self {
+            feature_px: 16,
+            render_px: 32,
+            code_dim: 48,
+            n_train: 3_000,
+            ..Self::default()
+        }
+    }
+    pub fn layout(&self) -> FeatureLayout {
+        FeatureLayout {
+            feature_px: self.feature_px,
+            use_color: self.use_color,
+            color_weight: self.color_weight,
+        }
+    }
+}
+
+/// Renders many centred views of one object (the GPU renderer, or the CPU rasteriser).
+pub trait ViewSource: Sync {
+    /// Depth (0 = empty) and colour of the object at each `camera_from_object`.
+    fn render(
+        &self,
+        intrinsics: &Intrinsics,
+        camera_from_object: &[Pose],
+    ) -> Result<Vec<(DepthImage, Option<ColorImage>)>, TrackerError>;
+}
+
+/// The CPU rasteriser as a view source (parallel over views).
+pub struct CpuViews<'a>(pub &'a Mesh);
+
+impl ViewSource for CpuViews<'_> {
+    fn render(
+        &self,
+        intrinsics: &Intrinsics,
+        camera_from_object: &[Pose],
+    ) -> Result<Vec<(DepthImage, Option<ColorImage>)>, TrackerError> {
+        Ok(camera_from_object
+            .par_iter()
+            .map(|p| {
+                let img = crate::tracker::raster::render(intrinsics, &[(self.0, *p)], 0.01, [0, 0, 0]);
+                (img.depth, Some(img.color))
+            })
+            .collect())
+    }
+}
+
+/// Header of a cache file (also the cache key).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct Header {
+    mesh_hash: String,
+    grid_step_deg: u32,
+    encoder_version: u32,
+    config: CodebookConfig,
+    diameter_m: f64,
+    input_dim: usize,
+    code_dim: usize,
+    n_bins: usize,
+}
+
+/// The codes of one object at every bin of a grid.
+#[derive(Debug, Clone)]
+pub struct Codebook {
+    pub grid: RotationGrid,
+    pub config: CodebookConfig,
+    pub mesh_hash: String,
+    pub diameter_m: f64,
+    pub encoder: LinearDenoisingEncoder,
+    /// Row-major `n_bins x code_dim`, unit rows.
+    pub codes: Vec<f32>,
+    /// Seconds the build took (0 when loaded from the cache).
+    pub build_seconds: f64,
+    /// True when it came from the cache.
+    pub from_cache: bool,
+}
+
+impl Codebook {
+    pub fn code_dim(&self) -> usize {
+        self.encoder.code_dim
+    }
+    pub fn n_bins(&self) -> usize {
+        self.grid.len()
+    }
+    pub fn layout(&self) -> FeatureLayout {
+        self.config.layout()
+    }
+    /// Side of a crop at the object, metres.
+    pub fn crop_side_m(&self) -> f64 {
+        self.config.crop_margin * self.diameter_m
+    }
+    /// Depth normalisation box, metres.
+    pub fn box_m(&self) -> f64 {
+        self.diameter_m
+    }
+    pub fn code(&self, bin: usize) -> &[f32] {
+        let k = self.code_dim();
+        &self.codes[bin * k..(bin + 1) * k]
+    }
+
+    /// The contract's entry point: renders with the GPU renderer (software Vulkan without a GPU).
+    pub fn load_or_build(
+        renderer: &crate::render::Renderer,
+        mesh: &Mesh,
+        grid: RotationGrid,
+        config: &CodebookConfig,
+        cache_dir: Option<&Path>,
+    ) -> Result<Self, TrackerError> {
+        let source = crate::tracker::codebook::RendererViews::new(renderer, mesh)?;
+        Self::load_or_build_with(&source, mesh, grid, config, cache_dir)
+    }
+
+    /// Loads the cached codebook of this key, or builds it with `source` (and caches it).
+    pub fn load_or_build_with(
+        source: &dyn ViewSource,
+        mesh: &Mesh,
+        grid: RotationGrid,
+        config: &CodebookConfig,
+        cache_dir: Option<&Path>,
+    ) -> Result<Self, TrackerError> {
+        let hash = mesh.content_hash();
+        if let Some(dir) = cache_dir {
+            let path = cache_path(dir, &hash, grid, config);
+            if path.exists() {
+                match read_cache(&path, &hash, grid, config) {
+                    Ok(cb) => return Ok(cb),
+                    Err(e) => tracing::warn!("codebook cache rejected, rebuilding: {e}"),
+                }
+            }
+        }
+        let cb = Self::build(source, mesh, grid, config)?;
+        if let Some(dir) = cache_dir {
+            std::fs::create_dir_all(dir)?;
+            write_cache(&cache_path(dir, &hash, grid, config), &cb)?;
+        }
+        Ok(cb)
+    }
+
+    /// Builds a codebook (no cache).
+    pub fn build(
+        source: &dyn ViewSource,
+        mesh: &Mesh,
+        grid: RotationGrid,
+        config: &CodebookConfig,
+    ) -> Result<Self, TrackerError> {
+        let t0 = Instant::now();
+        if config.feature_px < 4 || config.render_px < config.feature_px || config.code_dim == 0 {
+            return Err(TrackerError::Config(format!("bad codebook config {config:?}")));
+        }
+        let diameter_m = mesh.diameter_m();
+        if !(diameter_m > 0.0) {
+            return Err(TrackerError::Config("mesh has zero diameter".into()));
+        }
+        let side_m = config.crop_margin * diameter_m;
+        let f_render = config.render_px as f64 * config.render_distance_m / side_m;
+        let k = Intrinsics::from_focal(config.render_px as u32, config.render_px as u32, f_render)
+            .map_err(|e| TrackerError::Config(e.to_string()))?;
+        let poses: Vec<Pose> = (0..grid.n_viewpoints())
+            .map(|v| {
+                Pose::from_parts(
+                    Translation3::new(0.0, 0.0, config.render_distance_m),
+                    grid.viewpoint_rotation(v),
+                )
+            })
+            .collect();
+        let views = source.render(&k, &poses)?;
+        if views.len() != poses.len() {
+            return Err(TrackerError::Render(format!("{} views for {} poses", views.len(), poses.len())));
+        }
+        let layout = config.layout();
+        let d = layout.dim();
+        let centre = [config.render_px as f64 / 2.0, config.render_px as f64 / 2.0];
+        let template = |v: usize, theta: f64, out: &mut [f32], mask: &mut [bool]| {
+            let p = CropParams {
+                centre_px: centre,
+                side_px: config.render_px as f64,
+                rotation_rad: theta,
+                z_centre_m: config.render_distance_m,
+                box_m: diameter_m,
+                zero_is_far: true,
+            };
+            let (dimg, cimg) = &views[v];
+            sample_crop(&layout, dimg, cimg.as_ref(), &p, out, mask);
+        };
+
+        // training set: clean templates at bins, corrupted crops of the same bins
+        let n = config.n_train.max(64);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(config.seed);
+        let jobs: Vec<(usize, usize, u64)> =
+            (0..n).map(|_| (rng.random_range(0..grid.n_viewpoints()), rng.random_range(0..grid.n_inplane()), rng.random())).collect();
+        let step = grid.step_rad();
+        let rows: Vec<(Vec<f32>, Vec<f32>, Vec<bool>)> = jobs
+            .par_iter()
+            .map(|&(v, i, seed)| {
+                let mut clean = vec![0f32; d];
+                let mut mask = vec![false; d];
+                template(v, i as f64 * step, &mut clean, &mut mask);
+                let (noisy, nmask) = corrupt(&layout, &views[v], config, diameter_m, i as f64 * step, step, seed);
+                (clean, noisy, nmask)
+            })
+            .collect();
+        let mut clean = Vec::with_capacity(n * d);
+        let mut noisy = Vec::with_capacity(n * d);
+        let mut nmask = Vec::with_capacity(n * d);
+        for (c, x, m) in rows {
+            clean.extend(c);
+            noisy.extend(x);
+            nmask.extend(m);
+        }
+        let encoder =
+            LinearDenoisingEncoder::fit(&clean, &noisy, &nmask, n, d, config.code_dim, config.ridge_lambda_rel, config.seed)?;
+        drop((clean, noisy, nmask));
+
+        // codes of every bin: one viewpoint (all in-plane rotations) per task
+        let kd = encoder.code_dim;
+        let ni = grid.n_inplane();
+        let mut codes = vec![0f32; grid.len() * kd];
+        codes.par_chunks_mut(ni * kd).enumerate().for_each(|(v, out)| {
+            let mut x = vec![0f32; ni * d];
+            let mut mask = vec![false; d];
+            for i in 0..ni {
+                template(v, i as f64 * step, &mut x[i * d..(i + 1) * d], &mut mask);
+            }
+            encoder.encode_templates(&x, ni, out);
+            normalise_rows(out, kd);
+        });
+        Ok(Self {
+            grid,
+            config: config.clone(),
+            mesh_hash: mesh.content_hash(),
+            diameter_m,
+            encoder,
+            codes,
+            build_seconds: t0.elapsed().as_secs_f64(),
+            from_cache: false,
+        })
+    }
+}
+
+/// A corrupted crop of view `view` at in-plane angle `theta`: shifted, rescaled, rotated within
+/// the bin, depth offset and noise, missing pixels, an occluder, background clutter, colour
+/// changes or no colour at all.
+fn corrupt(
+    layout: &FeatureLayout,
+    view: &(DepthImage, Option<ColorImage>),
+    config: &CodebookConfig,
+    box_m: f64,
+    theta: f64,
+    step_rad: f64,
+    seed: u64,
+) -> (Vec<f32>, Vec<bool>) {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let d = layout.dim();
+    let f = layout.feature_px;
+    let rp = config.render_px as f64;
+    let mut x = vec![0f32; d];
+    let mut mask = vec![false; d];
+    let p = CropParams {
+        centre_px: [
+            rp / 2.0 + rng.random_range(-0.06..0.06) * rp,
+            rp / 2.0 + rng.random_range(-0.06..0.06) * rp,
+        ],
+        side_px: rp * rng.random_range(0.9..1.1),
+        rotation_rad: theta + rng.random_range(-0.5..0.5) * step_rad,
+        z_centre_m: config.render_distance_m + rng.random_range(-0.1..0.1) * box_m,
+        box_m,
+        zero_is_far: true,
+    };
+    sample_crop(layout, &view.0, view.1.as_ref(), &p, &mut x, &mut mask);
+    // background clutter: a tilted plane behind or around the object
+    let clutter = rng.random::<f64>() < 0.6;
+    let (c0, gx, gy) = (rng.random_range(0.3..1.0f32), rng.random_range(-0.4..0.4f32), rng.random_range(-0.4..0.4f32));
+    let grey = rng.random_range(0.1..0.9f32) * layout.color_weight;
+    let bg: Vec<bool> = x[..f * f].iter().map(|&v| v >= 1.0).collect();
+    if clutter {
+        for i in 0..f {
+            for j in 0..f {
+                let k = i * f + j;
+                if bg[k] {
+                    let v = c0 + gx * (j as f32 / f as f32 - 0.5) + gy * (i as f32 / f as f32 - 0.5);
+                    x[k] = v.clamp(0.0, 1.0);
+                }
+            }
+        }
+    }
+    // depth noise (relative noise of far cameras is large in normalised units)
+    let sigma = rng.random_range(0.0..0.35f32);
+    if let Ok(noise) = Normal::new(0.0f32, sigma.max(1e-6)) {
+        for k in 0..f * f {
+            if x[k] < 1.0 {
+                x[k] = (x[k] + noise.sample(&mut rng)).clamp(0.0, 1.0);
+            }
+        }
+    }
+    // occluder: a near rectangle
+    if rng.random::<f64>() < 0.4 {
+        let (w, h) = (rng.random_range(f / 6..f / 2 + 1), rng.random_range(f / 6..f / 2 + 1));
+        let (x0, y0) = (rng.random_range(0..f - w + 1), rng.random_range(0..f - h + 1));
+        let v = rng.random_range(0.0..0.3f32);
+        for i in y0..y0 + h {
+            for j in x0..x0 + w {
+                x[i * f + j] = v;
+            }
+        }
+    }
+    // missing depth readings
+    let missing = rng.random_range(0.0..0.2f64);
+    for k in 0..f * f {
+        if rng.random::<f64>() < missing {
+            mask[k] = true;
+        }
+    }
+    if layout.use_color {
+        let base = layout.depth_len();
+        if rng.random::<f64>() < 0.25 {
+            mask[base..].fill(true);
+        } else {
+            let gain = rng.random_range(0.7..1.3f32);
+            let fc = layout.color_px();
+            for ci in 0..fc {
+                for cj in 0..fc {
+                    // depth cell under this colour cell (top-left of its 2 x 2 block)
+                    let dk = (ci * f / fc) * f + cj * f / fc;
+                    for ch in 0..3 {
+                        let k = base + (ci * fc + cj) * 3 + ch;
+                        if clutter && bg[dk] {
+                            x[k] = grey;
+                        } else {
+                            x[k] = (x[k] * gain).min(layout.color_weight);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    (x, mask)
+}
+
+fn cache_path(dir: &Path, hash: &str, grid: RotationGrid, config: &CodebookConfig) -> PathBuf {
+    let cfg = serde_json::to_string(config).unwrap_or_default();
+    let mut h = Sha256::new();
+    h.update(cfg.as_bytes());
+    let ch: String = h.finalize().iter().take(6).map(|b| format!("{b:02x}")).collect();
+    let short = &hash[..hash.len().min(16)];
+    dir.join(format!("codebook-{short}-g{}-e{ENCODER_VERSION}-{ch}.bin", grid.step_deg()))
+}
+
+fn push_f32s(buf: &mut Vec<u8>, v: &[f32]) {
+    buf.extend_from_slice(&(v.len() as u64).to_le_bytes());
+    for x in v {
+        buf.extend_from_slice(&x.to_le_bytes());
+    }
+}
+
+fn write_cache(path: &Path, cb: &Codebook) -> Result<(), TrackerError> {
+    let header = Header {
+        mesh_hash: cb.mesh_hash.clone(),
+        grid_step_deg: cb.grid.step_deg(),
+        encoder_version: ENCODER_VERSION,
+        config: cb.config.clone(),
+        diameter_m: cb.diameter_m,
+        input_dim: cb.encoder.input_dim,
+        code_dim: cb.encoder.code_dim,
+        n_bins: cb.grid.len(),
+    };
+    let hj = serde_json::to_vec(&header).map_err(|e| TrackerError::Config(e.to_string()))?;
+    let mut buf = Vec::with_capacity(cb.codes.len() * 4 + 1024);
+    buf.extend_from_slice(MAGIC);
+    buf.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    buf.extend_from_slice(&(hj.len() as u32).to_le_bytes());
+    buf.extend_from_slice(&hj);
+    for v in [
+        &cb.encoder.mean_clean,
+        &cb.encoder.mean_observed,
+        &cb.encoder.pca_t,
+        &cb.encoder.ridge_t,
+        &cb.codes,
+    ] {
+        push_f32s(&mut buf, v);
+    }
+    let sum = Sha256::digest(&buf);
+    buf.extend_from_slice(&sum);
+    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
+    std::fs::write(&tmp, &buf)?;
+    std::fs::rename(&tmp, path)?;
+    Ok(())
+}
+
+fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConfig) -> Result<Codebook, TrackerError> {
+    let bad = |why: &str| TrackerError::BadCache {
+        path: path.display().to_string(),
+        why: why.to_string(),
+    };
+    let buf = std::fs::read(path)?;
+    if buf.len() < MAGIC.len() + 8 + 32 || &buf[..8] != MAGIC {
+        return Err(bad("no magic"));
+    }
+    let (body, sum) = buf.split_at(buf.len() - 32);
+    if Sha256::digest(body).as_slice() != sum {
+        return Err(bad("checksum mismatch"));
+    }
+    let mut pos = 8;
+    let u32_at = |p: usize| -> Result<u32, TrackerError> {
+        body.get(p..p + 4)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .ok_or_else(|| bad("truncated"))
+    };
+    if u32_at(pos)? != FORMAT_VERSION {
+        return Err(bad("format version"));
+    }
+    pos += 4;
+    let hl = u32_at(pos)? as usize;
+    pos += 4;
+    let header: Header =
+        serde_json::from_slice(body.get(pos..pos + hl).ok_or_else(|| bad("truncated header"))?).map_err(|e| bad(&e.to_string()))?;
+    pos += hl;
+    if header.mesh_hash != hash
+        || header.grid_step_deg != grid.step_deg()
+        || header.encoder_version != ENCODER_VERSION
+        || &header.config != config
+        || header.n_bins != grid.len()
+    {
+        return Err(bad("stale key"));
+    }
+    let mut read = |expected: usize| -> Result<Vec<f32>, TrackerError> {
+        let n = body
+            .get(pos..pos + 8)
+            .map(|b| u64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]) as usize)
+            .ok_or_else(|| bad("truncated"))?;
+        if n != expected {
+            return Err(bad("array size"));
+        }
+        pos += 8;
+        let bytes = body.get(pos..pos + 4 * n).ok_or_else(|| bad("truncated"))?;
+        pos += 4 * n;
+        Ok(bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
+    };
+    let (d, k) = (header.input_dim, header.code_dim);
+    let mean_clean = read(d)?;
+    let mean_observed = read(d)?;
+    let pca_t = read(d * k)?;
+    let ridge_t = read(d * k)?;
+    let codes = read(header.n_bins * k)?;
+    if codes.iter().any(|v| !v.is_finite()) {
+        return Err(bad("non-finite codes"));
+    }
+    Ok(Codebook {
+        grid,
+        config: header.config,
+        mesh_hash: header.mesh_hash,
+        diameter_m: header.diameter_m,
+        encoder: LinearDenoisingEncoder {
+            input_dim: d,
+            code_dim: k,
+            mean_clean,
+            mean_observed,
+            pca_t,
+            ridge_t,
+        },
+        codes,
+        build_seconds: 0.0,
+        from_cache: true,
+    })
+}
+
+/// The GPU renderer as a view source.
+pub struct RendererViews<'a> {
+    renderer: &'a crate::render::Renderer,
+    mesh: crate::render::MeshHandle,
+}
+
+impl<'a> RendererViews<'a> {
+    pub fn new(renderer: &'a crate::render::Renderer, mesh: &Mesh) -> Result<Self, TrackerError> {
+        let handle = renderer.upload_mesh(mesh).map_err(|e| TrackerError::Render(e.to_string()))?;
+        Ok(Self { renderer, mesh: handle })
+    }
+}
+
+impl ViewSource for RendererViews<'_> {
+    fn render(
+        &self,
+        intrinsics: &Intrinsics,
+        camera_from_object: &[Pose],
+    ) -> Result<Vec<(DepthImage, Option<ColorImage>)>, TrackerError> {
+        let clip = crate::render::ClipRange::new(0.01, 100.0).map_err(|e| TrackerError::Render(e.to_string()))?;
+        let views = self
+            .renderer
+            .render_views(&self.mesh, intrinsics, camera_from_object, clip)
+            .map_err(|e| TrackerError::Render(e.to_string()))?;
+        Ok(views.into_iter().map(|v| (v.depth, Some(v.color))).collect())
+    }
+}
+
+/// Rotation of a grid viewpoint, for callers that render templates themselves.
+pub fn viewpoint_pose(grid: &RotationGrid, viewpoint: usize, distance_m: f64) -> Pose {
+    Pose::from_parts(
+        Translation3::new(0.0, 0.0, distance_m),
+        grid.viewpoint_rotation(viewpoint) * UnitQuaternion::identity(),
+    )
+}

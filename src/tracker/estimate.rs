@@ -1,0 +1,360 @@
+//! Estimates from a particle set (paper section IV.D, PoseRBPF's rotation estimate).
+//!
+//! - Translation: weighted mean of the per-camera components (a component's weight is the sum
+//!   of its particles' weights).
+//! - Rotation: the particle-weighted mixture histogram; its top-K bins (egocentric through the
+//!   ray of the mean position) are clustered into modes. The estimate is the eigenvector
+//!   average of the top bins weighted by mass x a Gaussian of their angle to the previous
+//!   estimate (bins beyond `max_angle_rad` dropped). It *jumps to the global mode* when there
+//!   is no previous estimate, when no top bin lies near it, or when the best mode holds more
+//!   than `jump_ratio` times the mass found near the previous estimate (PoseRBPF's
+//!   `check_rot_expectation`); without the jump a wrong first guess would stick for ever.
+
+use crate::geometry::{PoseSamples, RotationGrid, euler_to_rotation, ray_rotation};
+use crate::tracker::bins::GridTables;
+use crate::tracker::{Component, RotationMode};
+use nalgebra::{Matrix3, Matrix4, Translation3, UnitQuaternion, Vector3};
+use rand::Rng;
+use serde::{Deserialize, Serialize};
+
+/// Parameters of the rotation estimate.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct EstimateConfig {
+    pub top_k_bins: usize,
+    pub sigma_rad: f64,
+    pub max_angle_rad: f64,
+    pub jump_ratio: f64,
+    pub mode_merge_rad: f64,
+    pub max_modes: usize,
+}
+
+impl Default for EstimateConfig {
+    fn default() -> Self {
+        Self {
+            top_k_bins: 200,
+            sigma_rad: 0.1,
+            max_angle_rad: 0.5,
+            jump_ratio: 2.0,
+            mode_merge_rad: 0.3,
+            max_modes: 8,
+        }
+    }
+}
+
+/// A read-only view of one object's particles.
+pub struct ParticleSet<'a> {
+    pub positions_m: &'a [Vector3<f64>],
+    pub sources: &'a [usize],
+    /// Normalised particle weights.
+    pub weights: &'a [f64],
+    /// Bin-major histograms (`hist[b * n + p]`), each particle's column sums to 1.
+    pub hist: &'a [f32],
+    pub tables: &'a GridTables,
+}
+
+impl ParticleSet<'_> {
+    pub fn n(&self) -> usize {
+        self.positions_m.len()
+    }
+
+    pub fn mean_position(&self) -> Vector3<f64> {
+        let mut m = Vector3::zeros();
+        for (p, w) in self.positions_m.iter().zip(self.weights) {
+            m += p * *w;
+        }
+        m
+    }
+
+    /// Mixture histogram `sum_p w_p h_p` (f64).
+    pub fn mixture(&self) -> Vec<f64> {
+        let n = self.n();
+        self.hist
+            .chunks(n)
+            .map(|row| row.iter().zip(self.weights).map(|(h, w)| *h as f64 * w).sum())
+            .collect()
+    }
+
+    /// Per-camera components (camera index, weight, mean, covariance).
+    pub fn components(&self, camera_names: &[String]) -> Vec<Component> {
+        let mut out = Vec::new();
+        for (ci, name) in camera_names.iter().enumerate() {
+            let idx: Vec<usize> = (0..self.n()).filter(|&i| self.sources[i] == ci).collect();
+            if idx.is_empty() {
+                continue;
+            }
+            let w: f64 = idx.iter().map(|&i| self.weights[i]).sum();
+            let mut mean = Vector3::zeros();
+            for &i in &idx {
+                mean += self.positions_m[i] * if w > 0.0 { self.weights[i] / w } else { 1.0 / idx.len() as f64 };
+            }
+            let mut cov = Matrix3::zeros();
+            for &i in &idx {
+                let d = self.positions_m[i] - mean;
+                cov += d * d.transpose() * if w > 0.0 { self.weights[i] / w } else { 1.0 / idx.len() as f64 };
+            }
+            let mut c = [[0.0; 3]; 3];
+            for (r, row) in c.iter_mut().enumerate() {
+                for (k, v) in row.iter_mut().enumerate() {
+                    *v = cov[(r, k)];
+                }
+            }
+            out.push(Component {
+                camera: name.clone(),
+                weight: w,
+                mean_m: [mean.x, mean.y, mean.z],
+                covariance_m2: c,
+            });
+        }
+        out
+    }
+
+    /// Translation covariance of all particles and the RMS distance from the mean.
+    pub fn translation_covariance(&self) -> (Matrix3<f64>, f64) {
+        let m = self.mean_position();
+        let mut cov = Matrix3::zeros();
+        for (p, w) in self.positions_m.iter().zip(self.weights) {
+            let d = p - m;
+            cov += d * d.transpose() * *w;
+        }
+        (cov, cov.trace().max(0.0).sqrt())
+    }
+
+    /// Natural log of the mixture mass of the bin holding `reference_from_object` (each
+    /// particle reads its own allocentric bin).
+    pub fn orientation_loglik(&self, reference_from_object: &UnitQuaternion<f64>) -> f64 {
+        let n = self.n();
+        let grid = self.tables.grid;
+        let mut mass = 0.0;
+        for p in 0..n {
+            let allo = ray_rotation(&self.positions_m[p]).inverse() * reference_from_object;
+            let b = grid.flat_of(&allo);
+            mass += self.weights[p] * self.hist[b * n + p] as f64;
+        }
+        mass.max(1e-300).ln()
+    }
+
+    /// `n` poses: a particle by weight, a bin from its histogram, a rotation uniform inside the
+    /// bin (elevation clamped to [0, pi]), egocentric through the particle's ray.
+    pub fn sample_poses(&self, count: usize, rng: &mut impl Rng) -> PoseSamples {
+        let n = self.n();
+        let grid = self.tables.grid;
+        let wsum: f64 = self.weights.iter().sum();
+        let mut cdfs: Vec<Option<Vec<f32>>> = vec![None; n];
+        let mut poses = Vec::with_capacity(count);
+        let s = grid.step_rad();
+        for _ in 0..count {
+            let mut u = rng.random::<f64>() * wsum;
+            let mut p = n - 1;
+            for (i, w) in self.weights.iter().enumerate() {
+                if u < *w {
+                    p = i;
+                    break;
+                }
+                u -= w;
+            }
+            let cdf = cdfs[p].get_or_insert_with(|| {
+                let mut acc = 0.0f32;
+                self.hist
+                    .chunks(n)
+                    .map(|row| {
+                        acc += row[p];
+                        acc
+                    })
+                    .collect()
+            });
+            let total = *cdf.last().unwrap_or(&0.0);
+            let target = rng.random::<f32>() * total;
+            let b = cdf.partition_point(|c| *c < target).min(grid.len() - 1);
+            let (e, a, t) = grid.angles_rad(grid.unflat(b));
+            let e = (e + (rng.random::<f64>() - 0.5) * s).clamp(0.0, std::f64::consts::PI);
+            let a = a + (rng.random::<f64>() - 0.5) * s;
+            let t = t + (rng.random::<f64>() - 0.5) * s;
+            let pos = self.positions_m[p];
+            let rot = ray_rotation(&pos) * euler_to_rotation(e, a, t);
+            poses.push(crate::geometry::Pose::from_parts(Translation3::from(pos), rot));
+        }
+        let ess = 1.0 / self.weights.iter().map(|w| (w / wsum).powi(2)).sum::<f64>();
+        PoseSamples {
+            poses,
+            effective_sample_size: ess.min(count as f64),
+        }
+    }
+}
+
+/// Weighted average of quaternions (largest eigenvector of `sum w q q^T`).
+pub fn average_quaternions(qs: &[(UnitQuaternion<f64>, f64)]) -> Option<UnitQuaternion<f64>> {
+    let mut m = Matrix4::zeros();
+    let mut total = 0.0;
+    for (q, w) in qs {
+        let v = q.as_vector();
+        m += v * v.transpose() * *w;
+        total += w;
+    }
+    if total <= 0.0 {
+        return None;
+    }
+    let eig = m.symmetric_eigen();
+    let (i, _) = eig.eigenvalues.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1))?;
+    let v = eig.eigenvectors.column(i);
+    Some(UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(v[3], v[0], v[1], v[2])))
+}
+
+/// The rotation part of an estimate.
+pub struct RotationSummary {
+    pub rotation: UnitQuaternion<f64>,
+    pub modes: Vec<RotationMode>,
+    pub entropy: f64,
+    /// Covariance of the rotation vector about `rotation` over the top bins.
+    pub covariance: Matrix3<f64>,
+    /// True when the estimate jumped to the global mode.
+    pub jumped: bool,
+}
+
+/// Rotation estimate, modes and entropy from a mixture histogram (see the module docs).
+pub fn summarise_rotation(
+    grid: &RotationGrid,
+    mixture: &[f64],
+    mean_position: &Vector3<f64>,
+    previous: Option<&UnitQuaternion<f64>>,
+    config: &EstimateConfig,
+) -> RotationSummary {
+    let total: f64 = mixture.iter().sum::<f64>().max(1e-300);
+    let entropy = -mixture
+        .iter()
+        .map(|m| m / total)
+        .filter(|p| *p > 0.0)
+        .map(|p| p * p.ln())
+        .sum::<f64>();
+    let k = config.top_k_bins.min(mixture.len()).max(1);
+    let mut idx: Vec<usize> = (0..mixture.len()).collect();
+    idx.select_nth_unstable_by(k - 1, |a, b| mixture[*b].total_cmp(&mixture[*a]));
+    idx.truncate(k);
+    idx.sort_by(|a, b| mixture[*b].total_cmp(&mixture[*a]));
+    let ray = ray_rotation(mean_position);
+    let top: Vec<(UnitQuaternion<f64>, f64)> =
+        idx.iter().map(|&b| (ray * grid.rotation(grid.unflat(b)), mixture[b] / total)).collect();
+    // modes: greedy clustering by angle, heaviest first
+    let mut clusters: Vec<(UnitQuaternion<f64>, Vec<(UnitQuaternion<f64>, f64)>)> = Vec::new();
+    for (q, m) in &top {
+        if let Some(c) = clusters.iter_mut().find(|c| c.0.angle_to(q) < config.mode_merge_rad) {
+            c.1.push((*q, *m));
+        } else {
+            clusters.push((*q, vec![(*q, *m)]));
+        }
+    }
+    let mut modes: Vec<RotationMode> = clusters
+        .iter()
+        .map(|(seed, members)| {
+            let r = average_quaternions(members).unwrap_or(*seed);
+            let q = r.quaternion();
+            RotationMode {
+                rotation_xyzw: [q.i, q.j, q.k, q.w],
+                mass: members.iter().map(|m| m.1).sum(),
+            }
+        })
+        .collect();
+    modes.sort_by(|a, b| b.mass.total_cmp(&a.mass));
+    modes.truncate(config.max_modes);
+    let global = modes
+        .first()
+        .map(|m| {
+            UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                m.rotation_xyzw[3],
+                m.rotation_xyzw[0],
+                m.rotation_xyzw[1],
+                m.rotation_xyzw[2],
+            ))
+        })
+        .unwrap_or_else(UnitQuaternion::identity);
+    let best_mass = modes.first().map(|m| m.mass).unwrap_or(0.0);
+    let (rotation, jumped) = match previous {
+        None => (global, true),
+        Some(prev) => {
+            let near: Vec<(UnitQuaternion<f64>, f64)> = top
+                .iter()
+                .filter_map(|(q, m)| {
+                    let a = q.angle_to(prev);
+                    (a < config.max_angle_rad)
+                        .then(|| (*q, m * (-0.5 * a * a / (config.sigma_rad * config.sigma_rad)).exp()))
+                })
+                .collect();
+            let near_mass: f64 =
+                top.iter().filter(|(q, _)| q.angle_to(prev) < config.max_angle_rad).map(|(_, m)| m).sum();
+            if near.is_empty() || best_mass > config.jump_ratio * near_mass {
+                (global, true)
+            } else {
+                // include the previous estimate itself lightly, so an average never flips sign
+                (average_quaternions(&near).unwrap_or(global), false)
+            }
+        }
+    };
+    let mut cov = Matrix3::zeros();
+    let mut wsum = 0.0;
+    for (q, m) in &top {
+        let d = (rotation.inverse() * q).scaled_axis();
+        cov += d * d.transpose() * *m;
+        wsum += m;
+    }
+    if wsum > 0.0 {
+        cov /= wsum;
+    }
+    RotationSummary {
+        rotation,
+        modes,
+        entropy,
+        covariance: cov,
+        jumped,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn average_of_close_quaternions_is_between_them() {
+        let a = UnitQuaternion::from_euler_angles(0.1, 0.0, 0.0);
+        let b = UnitQuaternion::from_euler_angles(0.3, 0.0, 0.0);
+        // the sign of a quaternion does not matter
+        let b_neg = UnitQuaternion::new_unchecked(-b.into_inner());
+        let m = average_quaternions(&[(a, 1.0), (b_neg, 1.0)]).unwrap();
+        let (r, _, _) = m.euler_angles();
+        assert!((r.abs() - 0.2).abs() < 1e-6, "{r}");
+    }
+
+    #[test]
+    fn summary_finds_two_modes_and_jumps_only_when_the_other_dominates() {
+        let grid = RotationGrid::new(15).unwrap();
+        let mut h = vec![1e-6; grid.len()];
+        let ba = grid.flat(crate::geometry::BinIndex {
+            elevation: 4,
+            azimuth: 3,
+            inplane: 2,
+        });
+        let bb = grid.flat(crate::geometry::BinIndex {
+            elevation: 8,
+            azimuth: 12,
+            inplane: 10,
+        });
+        h[ba] = 0.3;
+        h[bb] = 0.6;
+        let pos = Vector3::new(0.0, 0.0, 1.0);
+        let cfg = EstimateConfig::default();
+        let s = summarise_rotation(&grid, &h, &pos, None, &cfg);
+        assert!(s.modes.len() >= 2);
+        assert!((s.modes[0].mass / s.modes[1].mass - 2.0).abs() < 0.05, "{:?}", s.modes);
+        let rb = grid.rotation(grid.unflat(bb));
+        assert!(s.rotation.angle_to(&rb) < 1e-6);
+        // previous estimate at mode a: b holds only 2x a's mass -> no jump at ratio 2.5
+        let ra = grid.rotation(grid.unflat(ba));
+        let cfg2 = EstimateConfig {
+            jump_ratio: 2.5,
+            ..cfg
+        };
+        let s2 = summarise_rotation(&grid, &h, &pos, Some(&ra), &cfg2);
+        assert!(!s2.jumped && s2.rotation.angle_to(&ra) < 1e-6);
+        let s3 = summarise_rotation(&grid, &h, &pos, Some(&ra), &EstimateConfig { jump_ratio: 1.5, ..cfg });
+        assert!(s3.jumped && s3.rotation.angle_to(&rb) < 1e-6);
+        assert!(s.entropy > 0.0);
+    }
+}

@@ -1,0 +1,882 @@
+//! The [`Tracker`]: one multi-view RBPF per tracked object instance.
+//!
+//! One step (all objects of the scene):
+//! 1. Prediction: the robot camera's motion from odometry (odometry motion model per
+//!    particle, the rotation prior re-binned once through a pull map), Brownian object motion,
+//!    and the wrap-around blur of every histogram.
+//! 2. Detections start tracks (or add a camera's component to a young track, or restart a
+//!    track the filter declared lost); a tracked object ignores them.
+//! 3. Update: per view, the evidence of [`observation`](super::observation) is pulled into the
+//!    reference bins through one bin map per view and step and summed in log space (Eq. 6);
+//!    the posterior is the prior (floored at `prior_floor_rel` times the bin's volume) times the
+//!    fused likelihood; the particle weight is multiplied by the marginal (Eq. 7) and the depth
+//!    term.
+//! 4. Component weights are floored (`min_component_weight`) so that Eq. 2's mixture stays a
+//!    mixture; estimates; resampling *within* each source camera's component (systematic), so
+//!    each camera keeps its share of particles.
+//!
+//! Lost tracks: when the best similarity stays below `lost_similarity` for `lost_after_steps`
+//! steps while the track's mean lies inside some camera's image, the track is `Lost`; the next
+//! detection of its model restarts it. An object inside no camera's image keeps its prior
+//! (its uncertainty grows with the motion noise).
+
+use crate::geometry::{Pose, PoseSamples};
+use crate::mesh::Mesh;
+use crate::tracker::bins::{GridTables, add_pulled, blur, gaussian_kernel, pull};
+use crate::tracker::codebook::Codebook;
+use crate::tracker::estimate::{EstimateConfig, ParticleSet, summarise_rotation};
+use crate::tracker::motion::{OdometryNoise, brownian, move_with_odometry};
+use crate::tracker::observation::{ObservationConfig, ViewImage, observe_view};
+use crate::tracker::{
+    CameraFrame, CameraMount, Detection, Estimate, ParticleView, RobotOdometry, StepReport, Track, TrackStatus,
+    TrackerError,
+};
+use nalgebra::{Point3, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, Normal};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// Configuration of the tracker.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrackerConfig {
+    pub particles_per_external_camera: usize,
+    pub particles_from_robot_camera: usize,
+    /// Single-view baseline: use only the reference camera's frames.
+    pub only_reference_camera: bool,
+    pub observation: ObservationConfig,
+    pub estimate: EstimateConfig,
+    /// Best similarity below which a step counts as weak evidence.
+    pub lost_similarity: f32,
+    pub lost_after_steps: u32,
+    pub brownian_sigma_m: f64,
+    pub odometry_noise: OdometryNoise,
+    pub blur_radius_bins: usize,
+    pub blur_sigma_bins: f64,
+    /// Prior floor per bin, relative to the bin's share of a uniform distribution.
+    pub prior_floor_rel: f64,
+    pub min_component_weight: f64,
+    /// Initial pixel jitter as a share of the detection box side.
+    pub init_uv_jitter_rel: f64,
+    /// Initial depth jitter (m) plus this share of the object's diameter.
+    pub init_depth_sigma_m: f64,
+    /// A detection belongs to a track when the track's mean projects inside its box grown by
+    /// this share of its side.
+    pub association_margin_rel: f64,
+    pub seed: u64,
+}
+
+impl Default for TrackerConfig {
+    fn default() -> Self {
+        Self {
+            particles_per_external_camera: 30,
+            particles_from_robot_camera: 50,
+            only_reference_camera: false,
+            observation: ObservationConfig::default(),
+            estimate: EstimateConfig::default(),
+            lost_similarity: 0.45,
+            lost_after_steps: 5,
+            brownian_sigma_m: 0.005,
+            odometry_noise: OdometryNoise::default(),
+            blur_radius_bins: 2,
+            blur_sigma_bins: 1.0,
+            prior_floor_rel: 1e-3,
+            min_component_weight: 0.02,
+            init_uv_jitter_rel: 0.1,
+            init_depth_sigma_m: 0.03,
+            association_margin_rel: 0.3,
+            seed: 1,
+        }
+    }
+}
+
+impl TrackerConfig {
+    /// The paper's single-view baseline: the reference (robot) camera alone, 110 particles.
+    pub fn single_view() -> Self {
+        Self {
+            particles_from_robot_camera: 110,
+            particles_per_external_camera: 110,
+            only_reference_camera: true,
+            ..Self::default()
+        }
+    }
+}
+
+struct Model {
+    name: String,
+    mesh: Mesh,
+    codebook: Arc<Codebook>,
+    tables: Arc<GridTables>,
+}
+
+/// State of one track.
+struct TrackState {
+    model: usize,
+    positions: Vec<Vector3<f64>>,
+    sources: Vec<usize>,
+    weights: Vec<f64>,
+    hist: Vec<f32>,
+    rotation: Option<UnitQuaternion<f64>>,
+    estimate: Option<Estimate>,
+}
+
+impl TrackState {
+    fn n(&self) -> usize {
+        self.positions.len()
+    }
+    fn set<'a>(&'a self, tables: &'a GridTables) -> ParticleSet<'a> {
+        ParticleSet {
+            positions_m: &self.positions,
+            sources: &self.sources,
+            weights: &self.weights,
+            hist: &self.hist,
+            tables,
+        }
+    }
+}
+
+/// All tracked objects of one scene.
+pub struct Tracker {
+    config: TrackerConfig,
+    cameras: BTreeMap<String, CameraMount>,
+    camera_names: Vec<String>,
+    reference: String,
+    models: Vec<Model>,
+    tables: Vec<Arc<GridTables>>,
+    tracks: Vec<Track>,
+    states: Vec<TrackState>,
+    next_id: u64,
+    rng: rand_chacha::ChaCha8Rng,
+    world_from_reference: Pose,
+    last_odometry: Option<RobotOdometry>,
+    fused: Vec<f32>,
+    sim: Vec<f32>,
+    scratch: Vec<f32>,
+    stamp_ns: i64,
+}
+
+impl Tracker {
+    pub fn new(config: TrackerConfig, cameras: BTreeMap<String, CameraMount>, reference_camera: String) -> Self {
+        let camera_names: Vec<String> = cameras.keys().cloned().collect();
+        let world_from_reference = match cameras.get(&reference_camera) {
+            Some(CameraMount::Stationary { world_from_camera }) => *world_from_camera,
+            _ => Pose::identity(),
+        };
+        let seed = config.seed;
+        Self {
+            config,
+            cameras,
+            camera_names,
+            reference: reference_camera,
+            models: Vec::new(),
+            tables: Vec::new(),
+            tracks: Vec::new(),
+            states: Vec::new(),
+            next_id: 1,
+            rng: rand_chacha::ChaCha8Rng::seed_from_u64(seed),
+            world_from_reference,
+            last_odometry: None,
+            fused: Vec::new(),
+            sim: Vec::new(),
+            scratch: Vec::new(),
+            stamp_ns: 0,
+        }
+    }
+
+    pub fn config(&self) -> &TrackerConfig {
+        &self.config
+    }
+
+    /// Registers an object model (detections name it by `name`).
+    pub fn add_object_model(&mut self, name: &str, mesh: Mesh, codebook: Arc<Codebook>) {
+        let grid = codebook.grid;
+        let tables = match self.tables.iter().find(|t| t.grid == grid) {
+            Some(t) => t.clone(),
+            None => {
+                let t = Arc::new(GridTables::new(grid));
+                self.tables.push(t.clone());
+                t
+            }
+        };
+        if let Some(m) = self.models.iter_mut().find(|m| m.name == name) {
+            // a better codebook for a known model: tracks of it restart on their next detection
+            let same_grid = m.codebook.grid == grid;
+            m.mesh = mesh;
+            m.codebook = codebook;
+            m.tables = tables;
+            if !same_grid {
+                let mi = self.models.iter().position(|m| m.name == name).unwrap_or(0);
+                for (t, s) in self.tracks.iter_mut().zip(&self.states) {
+                    if s.model == mi {
+                        t.status = TrackStatus::Lost;
+                    }
+                }
+            }
+            return;
+        }
+        self.models.push(Model {
+            name: name.to_string(),
+            mesh,
+            codebook,
+            tables,
+        });
+    }
+
+    pub fn tracks(&self) -> &[Track] {
+        &self.tracks
+    }
+
+    pub fn reference_camera(&self) -> &str {
+        &self.reference
+    }
+
+    pub fn world_from_reference(&self) -> Pose {
+        self.world_from_reference
+    }
+
+    pub fn model_mesh(&self, name: &str) -> Option<&Mesh> {
+        self.models.iter().find(|m| m.name == name).map(|m| &m.mesh)
+    }
+
+    fn index_of(&self, track_id: u64) -> Option<usize> {
+        self.tracks.iter().position(|t| t.id == track_id)
+    }
+
+    pub fn estimate(&self, track_id: u64) -> Option<Estimate> {
+        let i = self.index_of(track_id)?;
+        self.states[i].estimate.clone()
+    }
+
+    pub fn sample_poses(&self, track_id: u64, n: usize, rng: &mut impl Rng) -> Option<PoseSamples> {
+        let i = self.index_of(track_id)?;
+        let s = &self.states[i];
+        if s.n() == 0 {
+            return None;
+        }
+        Some(s.set(&self.models[s.model].tables).sample_poses(n, rng))
+    }
+
+    pub fn orientation_loglik(&self, track_id: u64, reference_from_object_rotation: &UnitQuaternion<f64>) -> Option<f64> {
+        let i = self.index_of(track_id)?;
+        let s = &self.states[i];
+        if s.n() == 0 {
+            return None;
+        }
+        Some(s.set(&self.models[s.model].tables).orientation_loglik(reference_from_object_rotation))
+    }
+
+    pub fn particles(&self, track_id: u64) -> Option<Vec<ParticleView>> {
+        let i = self.index_of(track_id)?;
+        let s = &self.states[i];
+        Some(
+            (0..s.n())
+                .map(|p| ParticleView {
+                    position_in_reference_m: [s.positions[p].x, s.positions[p].y, s.positions[p].z],
+                    camera: self.camera_names[s.sources[p]].clone(),
+                    weight: s.weights[p],
+                })
+                .collect(),
+        )
+    }
+
+    /// `view_from_reference` of a camera at the current step.
+    fn view_from_reference(&self, camera: &str, odometry: Option<&RobotOdometry>) -> Option<Pose> {
+        if camera == self.reference {
+            return Some(Pose::identity());
+        }
+        match self.cameras.get(camera)? {
+            CameraMount::Stationary { world_from_camera } => Some(world_from_camera.inverse() * self.world_from_reference),
+            CameraMount::Robot { base_from_camera } => {
+                let base_from_reference = match (odometry, self.cameras.get(&self.reference)) {
+                    (Some(o), _) => o.base_from_camera,
+                    (None, Some(CameraMount::Robot { base_from_camera })) => *base_from_camera,
+                    _ => return None,
+                };
+                Some(base_from_camera.inverse() * base_from_reference)
+            }
+        }
+    }
+
+    /// One filter step with the frames of this time (any subset of the cameras) and the robot's
+    /// odometry (when the reference camera is on the robot).
+    pub fn step(&mut self, frames: &[CameraFrame], odometry: Option<&RobotOdometry>) -> Result<StepReport, TrackerError> {
+        let t_start = Instant::now();
+        let mut report = StepReport::default();
+        for f in frames {
+            if !self.cameras.contains_key(&f.camera) {
+                return Err(TrackerError::UnknownCamera(f.camera.clone()));
+            }
+            let (w, h) = (f.intrinsics.width, f.intrinsics.height);
+            if f.depth.width != w || f.depth.height != h || f.color.as_ref().is_some_and(|c| c.width != w || c.height != h) {
+                return Err(TrackerError::ImageSize {
+                    camera: f.camera.clone(),
+                    got_w: f.depth.width,
+                    got_h: f.depth.height,
+                    want_w: w,
+                    want_h: h,
+                });
+            }
+        }
+        let frames: Vec<&CameraFrame> =
+            frames.iter().filter(|f| !self.config.only_reference_camera || f.camera == self.reference).collect();
+        let stamp = frames.iter().map(|f| f.stamp_ns).max().or(odometry.map(|o| o.stamp_ns)).unwrap_or(self.stamp_ns);
+        self.stamp_ns = stamp;
+        report.stamp_ns = stamp;
+
+        // 1. prediction
+        let t0 = Instant::now();
+        let robot_reference = matches!(self.cameras.get(&self.reference), Some(CameraMount::Robot { .. }));
+        if let (Some(o), true) = (odometry, robot_reference) {
+            if let Some(prev) = self.last_odometry {
+                self.apply_odometry(&prev, o);
+            }
+            self.world_from_reference = o.world_from_odom * o.odom_from_base * o.base_from_camera;
+            self.last_odometry = Some(*o);
+        }
+        for s in &mut self.states {
+            brownian(&mut s.positions, self.config.brownian_sigma_m, &mut self.rng);
+        }
+        report.timings.motion_s += t0.elapsed().as_secs_f64();
+        let t0 = Instant::now();
+        let kernel = gaussian_kernel(self.config.blur_radius_bins, self.config.blur_sigma_bins);
+        for s in &mut self.states {
+            if s.n() > 0 {
+                let grid = self.models[s.model].tables.grid;
+                let n = s.n();
+                blur(&grid, &mut s.hist, n, &kernel, &mut self.scratch);
+                normalise_columns(&mut s.hist, n);
+            }
+        }
+        report.timings.blur_s += t0.elapsed().as_secs_f64();
+
+        // poses of this step's views
+        let views: Vec<(&CameraFrame, Pose, usize)> = frames
+            .iter()
+            .filter_map(|f| {
+                let ci = self.camera_names.iter().position(|c| c == &f.camera)?;
+                Some((*f, self.view_from_reference(&f.camera, odometry)?, ci))
+            })
+            .collect();
+
+        // 2. detections
+        let mut fresh: Vec<usize> = Vec::new();
+        for (frame, view_from_ref, ci) in &views {
+            for det in &frame.detections {
+                self.handle_detection(frame, det, view_from_ref, *ci, &mut report, &mut fresh);
+            }
+        }
+
+        // 3. update, 4. estimates and resampling
+        for ti in 0..self.states.len() {
+            if self.states[ti].n() == 0 {
+                continue;
+            }
+            self.update_track(ti, &views, &mut report);
+        }
+        report.timings.total_s = t_start.elapsed().as_secs_f64();
+        Ok(report)
+    }
+
+    fn apply_odometry(&mut self, prev: &RobotOdometry, cur: &RobotOdometry) {
+        let mean_from = |s: &TrackState| -> Vector3<f64> { s.set(&self.models[s.model].tables).mean_position() };
+        let prev_from_cur_exact = prev.base_from_camera.inverse()
+            * prev.odom_from_base.inverse()
+            * cur.odom_from_base
+            * cur.base_from_camera;
+        for i in 0..self.states.len() {
+            if self.states[i].n() == 0 {
+                continue;
+            }
+            let old_mean = mean_from(&self.states[i]);
+            let s = &mut self.states[i];
+            move_with_odometry(
+                &mut s.positions,
+                &prev.odom_from_base,
+                &cur.odom_from_base,
+                &prev.base_from_camera,
+                &cur.base_from_camera,
+                &self.config.odometry_noise,
+                &mut self.rng,
+            );
+            // re-bin the prior: new bin b reads old bin map[b]
+            let new_mean = prev_from_cur_exact.inverse_transform_point(&Point3::from(old_mean)).coords;
+            let q = crate::geometry::ray_rotation(&old_mean).inverse()
+                * prev_from_cur_exact.rotation
+                * crate::geometry::ray_rotation(&new_mean);
+            if q.angle() > 1e-4 {
+                let tables = self.models[s.model].tables.clone();
+                let map = tables.pull_map(&q);
+                self.scratch.resize(s.hist.len(), 0.0);
+                pull(&mut self.scratch, &s.hist, &map, s.n());
+                std::mem::swap(&mut self.scratch, &mut s.hist);
+                let n = s.n();
+                normalise_columns(&mut s.hist, n);
+            }
+        }
+    }
+
+    fn handle_detection(
+        &mut self,
+        frame: &CameraFrame,
+        det: &Detection,
+        view_from_ref: &Pose,
+        ci: usize,
+        report: &mut StepReport,
+        fresh: &mut Vec<usize>,
+    ) {
+        let Some(mi) = self.models.iter().position(|m| m.name == det.object) else {
+            return;
+        };
+        let [bx, by, bw, bh] = det.bbox_xywh_px;
+        if !(bw > 1.0 && bh > 1.0) {
+            return;
+        }
+        let margin = self.config.association_margin_rel;
+        let inside = |s: &TrackState| -> bool {
+            let m = s.set(&self.models[s.model].tables).mean_position();
+            let p = view_from_ref * Point3::from(m);
+            match frame.intrinsics.project(&p) {
+                Some([u, v]) => {
+                    u >= bx - margin * bw && u <= bx + bw * (1.0 + margin) && v >= by - margin * bh && v <= by + bh * (1.0 + margin)
+                }
+                None => false,
+            }
+        };
+        let associated = (0..self.states.len()).find(|&i| {
+            self.states[i].model == mi && self.tracks[i].status != TrackStatus::Lost && inside(&self.states[i])
+        });
+        match associated {
+            Some(i) => {
+                // a young track (or one never seen by this camera) gains this camera's component
+                let has_camera = self.states[i].sources.contains(&ci);
+                if !has_camera && (self.tracks[i].status == TrackStatus::Initialising || fresh.contains(&i)) {
+                    let parts = self.init_particles(mi, frame, det, view_from_ref, ci);
+                    self.add_particles(i, parts, ci);
+                }
+            }
+            None => {
+                let parts = self.init_particles(mi, frame, det, view_from_ref, ci);
+                let lost = (0..self.states.len())
+                    .find(|&i| self.states[i].model == mi && self.tracks[i].status == TrackStatus::Lost);
+                let i = match lost {
+                    Some(i) => {
+                        report.tracks_reinitialised.push(self.tracks[i].id);
+                        self.states[i].positions.clear();
+                        self.states[i].sources.clear();
+                        self.states[i].weights.clear();
+                        self.states[i].hist.clear();
+                        self.states[i].rotation = None;
+                        self.tracks[i].status = TrackStatus::Initialising;
+                        self.tracks[i].weak_steps = 0;
+                        i
+                    }
+                    None => {
+                        let id = self.next_id;
+                        self.next_id += 1;
+                        self.tracks.push(Track {
+                            id,
+                            object: det.object.clone(),
+                            status: TrackStatus::Initialising,
+                            stamp_ns: self.stamp_ns,
+                            best_similarity: f64::NAN,
+                            weak_steps: 0,
+                            seen_by: Vec::new(),
+                        });
+                        self.states.push(TrackState {
+                            model: mi,
+                            positions: Vec::new(),
+                            sources: Vec::new(),
+                            weights: Vec::new(),
+                            hist: Vec::new(),
+                            rotation: None,
+                            estimate: None,
+                        });
+                        report.tracks_created.push(id);
+                        self.states.len() - 1
+                    }
+                };
+                self.add_particles(i, parts, ci);
+                fresh.push(i);
+            }
+        }
+    }
+
+    /// Particles (reference frame) from one detection: pixels around the box centre, depth
+    /// from the median reading in the box's centre plus a quarter of the object's diameter.
+    fn init_particles(
+        &mut self,
+        mi: usize,
+        frame: &CameraFrame,
+        det: &Detection,
+        view_from_ref: &Pose,
+        ci: usize,
+    ) -> Vec<Vector3<f64>> {
+        let robot = matches!(self.cameras.get(&self.camera_names[ci]), Some(CameraMount::Robot { .. }));
+        let n = if robot || self.camera_names[ci] == self.reference {
+            self.config.particles_from_robot_camera
+        } else {
+            self.config.particles_per_external_camera
+        };
+        let diameter = self.models[mi].codebook.diameter_m;
+        let [bx, by, bw, bh] = det.bbox_xywh_px;
+        let (cu, cv) = (bx + bw / 2.0, by + bh / 2.0);
+        let k = &frame.intrinsics;
+        let mut depths: Vec<f32> = Vec::new();
+        let (x0, x1) = ((bx + bw * 0.25).max(0.0) as u32, ((bx + bw * 0.75) as u32).min(k.width.saturating_sub(1)));
+        let (y0, y1) = ((by + bh * 0.25).max(0.0) as u32, ((by + bh * 0.75) as u32).min(k.height.saturating_sub(1)));
+        for y in y0..=y1 {
+            for x in x0..=x1 {
+                let d = frame.depth.get(x, y);
+                if d > 0.0 && d.is_finite() {
+                    depths.push(d);
+                }
+            }
+        }
+        let z0 = if depths.is_empty() {
+            k.fx() * diameter * 0.8 / bw.max(bh)
+        } else {
+            let mid = depths.len() / 2;
+            depths.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+            depths[mid] as f64 + 0.25 * diameter
+        };
+        let zs = Normal::new(0.0, self.config.init_depth_sigma_m + 0.1 * diameter).ok();
+        let ref_from_view = view_from_ref.inverse();
+        (0..n)
+            .map(|_| {
+                let u = cu + (self.rng.random::<f64>() - 0.5) * 2.0 * self.config.init_uv_jitter_rel * bw;
+                let v = cv + (self.rng.random::<f64>() - 0.5) * 2.0 * self.config.init_uv_jitter_rel * bh;
+                let z = (z0 + zs.map(|d| d.sample(&mut self.rng)).unwrap_or(0.0)).max(0.1);
+                (ref_from_view * k.unproject([u, v], z)).coords
+            })
+            .collect()
+    }
+
+    /// Appends particles of camera `ci` with uniform (volume-weighted) histograms; the new
+    /// component starts with the mean weight of the existing particles.
+    fn add_particles(&mut self, i: usize, parts: Vec<Vector3<f64>>, ci: usize) {
+        let tables = self.models[self.states[i].model].tables.clone();
+        let s = &mut self.states[i];
+        let old_n = s.n();
+        let new_n = old_n + parts.len();
+        let nb = tables.grid.len();
+        let mut hist = vec![0f32; nb * new_n];
+        hist.par_chunks_mut(new_n).enumerate().for_each(|(b, row)| {
+            if old_n > 0 {
+                row[..old_n].copy_from_slice(&s.hist[b * old_n..(b + 1) * old_n]);
+            }
+            row[old_n..].fill(tables.volume(b) as f32);
+        });
+        s.hist = hist;
+        let w_new = if old_n > 0 { 1.0 / new_n as f64 } else { 1.0 / parts.len() as f64 };
+        for w in &mut s.weights {
+            *w *= old_n as f64 / new_n as f64;
+        }
+        s.weights.extend(std::iter::repeat_n(w_new, parts.len()));
+        s.sources.extend(std::iter::repeat_n(ci, parts.len()));
+        s.positions.extend(parts);
+        normalise(&mut s.weights);
+    }
+
+    fn update_track(&mut self, ti: usize, views: &[(&CameraFrame, Pose, usize)], report: &mut StepReport) {
+        let mi = self.states[ti].model;
+        let codebook = self.models[mi].codebook.clone();
+        let tables = self.models[mi].tables.clone();
+        let n = self.states[ti].n();
+        let nb = tables.grid.len();
+        let obs_cfg = self.config.observation;
+        self.fused.clear();
+        self.fused.resize(nb * n, 0.0);
+        let mut depth_log = vec![0f32; n];
+        let mut best = f32::NEG_INFINITY;
+        let mut seen_by = Vec::new();
+        let mut in_some_image = false;
+        let mean_ref = self.states[ti].set(&tables).mean_position();
+        for (frame, view_from_ref, _ci) in views {
+            let positions: Vec<Vector3<f64>> =
+                self.states[ti].positions.iter().map(|p| (view_from_ref * Point3::from(*p)).coords).collect();
+            let mean_view = (view_from_ref * Point3::from(mean_ref)).coords;
+            if let Some(uv) = frame.intrinsics.project(&Point3::from(mean_view))
+                && frame.intrinsics.contains(uv)
+            {
+                in_some_image = true;
+            }
+            let img = ViewImage {
+                intrinsics: &frame.intrinsics,
+                depth: &frame.depth,
+                color: frame.color.as_ref(),
+            };
+            let mut sim = std::mem::take(&mut self.sim);
+            let ev = observe_view(&codebook, &img, &positions, &obs_cfg, &mut sim);
+            let Some(ev) = ev else {
+                self.sim = sim;
+                continue;
+            };
+            report.timings.crops_s += ev.crops_s;
+            report.timings.encoding_s += ev.encoding_s;
+            report.timings.matching_s += ev.matching_s;
+            report.timings.likelihoods_s += ev.likelihoods_s;
+            let t0 = Instant::now();
+            best = best.max(ev.best_similarity);
+            seen_by.push(frame.camera.clone());
+            if frame.camera == self.reference {
+                self.fused.par_iter_mut().zip(ev.loglik.par_iter()).for_each(|(f, l)| *f += l);
+            } else {
+                let q = crate::geometry::ray_rotation(&mean_view).inverse()
+                    * view_from_ref.rotation
+                    * crate::geometry::ray_rotation(&mean_ref);
+                let map = tables.pull_map(&q);
+                add_pulled(&mut self.fused, &ev.loglik, &map, n);
+            }
+            for (d, l) in depth_log.iter_mut().zip(&ev.depth_log) {
+                *d += l;
+            }
+            self.sim = ev.loglik;
+            report.timings.fusion_s += t0.elapsed().as_secs_f64();
+        }
+        let t0 = Instant::now();
+        let track = &mut self.tracks[ti];
+        track.stamp_ns = self.stamp_ns;
+        track.seen_by = seen_by.clone();
+        track.best_similarity = if best.is_finite() { best as f64 } else { f64::NAN };
+        let had_evidence = !seen_by.is_empty();
+        if had_evidence {
+            let s = &mut self.states[ti];
+            // per particle max of the fused log-likelihood
+            let fmax = column_max(&self.fused, n);
+            let floor_rel = self.config.prior_floor_rel as f32;
+            let fused = &self.fused;
+            let sums: Vec<f64> = s
+                .hist
+                .par_chunks_mut(n * 1024)
+                .zip(fused.par_chunks(n * 1024))
+                .enumerate()
+                .map(|(c, (hc, fc))| {
+                    let mut acc = vec![0f64; n];
+                    for (k, (hrow, frow)) in hc.chunks_mut(n).zip(fc.chunks(n)).enumerate() {
+                        let floor = floor_rel * tables.volume(c * 1024 + k) as f32;
+                        for p in 0..n {
+                            let v = hrow[p].max(floor) * (frow[p] - fmax[p]).exp();
+                            hrow[p] = v;
+                            acc[p] += v as f64;
+                        }
+                    }
+                    acc
+                })
+                .reduce(
+                    || vec![0f64; n],
+                    |mut a, b| {
+                        for (x, y) in a.iter_mut().zip(b) {
+                            *x += y;
+                        }
+                        a
+                    },
+                );
+            // new log weights: old + log marginal (Eq. 7) + depth term
+            let mut logw: Vec<f64> = (0..n)
+                .map(|p| s.weights[p].max(1e-300).ln() + sums[p].max(1e-300).ln() + fmax[p] as f64 + depth_log[p] as f64)
+                .collect();
+            let m = logw.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+            for v in &mut logw {
+                *v = (*v - m).exp();
+            }
+            s.weights = logw;
+            normalise(&mut s.weights);
+            let inv: Vec<f32> = sums.iter().map(|v| if *v > 0.0 { (1.0 / v) as f32 } else { 0.0 }).collect();
+            s.hist.par_chunks_mut(n).for_each(|row| {
+                for (h, i) in row.iter_mut().zip(&inv) {
+                    *h *= i;
+                }
+            });
+        }
+        report.timings.fusion_s += t0.elapsed().as_secs_f64();
+        // component floor
+        floor_components(&mut self.states[ti], self.config.min_component_weight);
+
+        // status
+        let track = &mut self.tracks[ti];
+        if had_evidence && best >= self.config.lost_similarity {
+            track.weak_steps = 0;
+            if track.status == TrackStatus::Initialising {
+                track.status = TrackStatus::Tracking;
+            }
+        } else if in_some_image {
+            track.weak_steps += 1;
+            if track.weak_steps >= self.config.lost_after_steps && track.status != TrackStatus::Lost {
+                track.status = TrackStatus::Lost;
+                report.tracks_lost.push(track.id);
+            }
+        }
+
+        // estimates
+        let t0 = Instant::now();
+        let status = self.tracks[ti].status;
+        let est = {
+            let s = &self.states[ti];
+            let set = s.set(&tables);
+            let mean = set.mean_position();
+            let (tcov, tstd) = set.translation_covariance();
+            let mixture = set.mixture();
+            let summary = summarise_rotation(&tables.grid, &mixture, &mean, s.rotation.as_ref(), &self.config.estimate);
+            let mut cov6 = [[0.0; 6]; 6];
+            for r in 0..3 {
+                for c in 0..3 {
+                    cov6[r][c] = tcov[(r, c)];
+                    cov6[r + 3][c + 3] = summary.covariance[(r, c)];
+                }
+            }
+            let est = Estimate {
+                reference_from_object: Pose::from_parts(nalgebra::Translation3::from(mean), summary.rotation),
+                translation_std_m: tstd,
+                components: set.components(&self.camera_names),
+                rotation_modes: summary.modes,
+                rotation_entropy: summary.entropy,
+                covariance_6x6: cov6,
+                status,
+                stamp_ns: self.stamp_ns,
+            };
+            (est, summary.rotation)
+        };
+        self.states[ti].rotation = Some(est.1);
+        self.states[ti].estimate = Some(est.0);
+        report.timings.estimates_s += t0.elapsed().as_secs_f64();
+
+        // resampling within components
+        if had_evidence {
+            let t0 = Instant::now();
+            self.resample(ti);
+            report.timings.resampling_s += t0.elapsed().as_secs_f64();
+        }
+    }
+
+    /// Systematic resampling inside each source camera's component: the component keeps its
+    /// particle count and its weight (spread evenly over its new particles).
+    fn resample(&mut self, ti: usize) {
+        let s = &mut self.states[ti];
+        let n = s.n();
+        let mut src_idx: Vec<usize> = Vec::with_capacity(n);
+        let mut new_w: Vec<f64> = Vec::with_capacity(n);
+        let mut cams: Vec<usize> = s.sources.clone();
+        cams.sort_unstable();
+        cams.dedup();
+        let mut new_sources = Vec::with_capacity(n);
+        for c in cams {
+            let idx: Vec<usize> = (0..n).filter(|&i| s.sources[i] == c).collect();
+            let wc: f64 = idx.iter().map(|&i| s.weights[i]).sum();
+            let m = idx.len();
+            let u0 = self.rng.random::<f64>() / m as f64;
+            let mut acc = 0.0;
+            let mut j = 0;
+            for k in 0..m {
+                let u = (u0 + k as f64 / m as f64) * wc;
+                while j + 1 < m && acc + s.weights[idx[j]] < u {
+                    acc += s.weights[idx[j]];
+                    j += 1;
+                }
+                src_idx.push(idx[j]);
+                new_w.push(wc / m as f64);
+                new_sources.push(c);
+            }
+        }
+        let positions: Vec<Vector3<f64>> = src_idx.iter().map(|&i| s.positions[i]).collect();
+        self.scratch.resize(s.hist.len(), 0.0);
+        self.scratch.par_chunks_mut(n).zip(s.hist.par_chunks(n)).for_each(|(dst, src)| {
+            for (d, &i) in dst.iter_mut().zip(&src_idx) {
+                *d = src[i];
+            }
+        });
+        std::mem::swap(&mut self.scratch, &mut s.hist);
+        s.positions = positions;
+        s.weights = new_w;
+        s.sources = new_sources;
+        normalise(&mut s.weights);
+    }
+}
+
+fn normalise(w: &mut [f64]) {
+    let s: f64 = w.iter().sum();
+    if s > 0.0 && s.is_finite() {
+        for v in w.iter_mut() {
+            *v /= s;
+        }
+    } else {
+        let u = 1.0 / w.len().max(1) as f64;
+        w.fill(u);
+    }
+}
+
+/// Each particle's histogram (a column of the bin-major layout) rescaled to sum to 1.
+fn normalise_columns(h: &mut [f32], n: usize) {
+    let sums = h
+        .par_chunks(n * 1024)
+        .map(|c| {
+            let mut acc = vec![0f64; n];
+            for row in c.chunks(n) {
+                for (a, v) in acc.iter_mut().zip(row) {
+                    *a += *v as f64;
+                }
+            }
+            acc
+        })
+        .reduce(
+            || vec![0f64; n],
+            |mut a, b| {
+                for (x, y) in a.iter_mut().zip(b) {
+                    *x += y;
+                }
+                a
+            },
+        );
+    let inv: Vec<f32> = sums.iter().map(|s| if *s > 0.0 { (1.0 / s) as f32 } else { 0.0 }).collect();
+    h.par_chunks_mut(n).for_each(|row| {
+        for (v, i) in row.iter_mut().zip(&inv) {
+            *v *= i;
+        }
+    });
+}
+
+fn column_max(h: &[f32], n: usize) -> Vec<f32> {
+    h.par_chunks(n * 1024)
+        .map(|c| {
+            let mut m = vec![f32::NEG_INFINITY; n];
+            for row in c.chunks(n) {
+                for (a, v) in m.iter_mut().zip(row) {
+                    *a = a.max(*v);
+                }
+            }
+            m
+        })
+        .reduce(
+            || vec![f32::NEG_INFINITY; n],
+            |mut a, b| {
+                for (x, y) in a.iter_mut().zip(b) {
+                    *x = x.max(y);
+                }
+                a
+            },
+        )
+}
+
+/// Floors each component's total weight at `min_weight` (then renormalises).
+fn floor_components(s: &mut TrackState, min_weight: f64) {
+    let mut cams: Vec<usize> = s.sources.clone();
+    cams.sort_unstable();
+    cams.dedup();
+    if cams.len() < 2 {
+        return;
+    }
+    for c in cams {
+        let wc: f64 = (0..s.n()).filter(|&i| s.sources[i] == c).map(|i| s.weights[i]).sum();
+        if wc < min_weight {
+            let m = (0..s.n()).filter(|&i| s.sources[i] == c).count() as f64;
+            for i in 0..s.n() {
+                if s.sources[i] == c {
+                    s.weights[i] = if wc > 0.0 { s.weights[i] * min_weight / wc } else { min_weight / m };
+                }
+            }
+        }
+    }
+    normalise(&mut s.weights);
+}

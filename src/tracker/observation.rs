@@ -1,0 +1,251 @@
+//! The observation model of one view: crops around the projected particles, codes, cosine
+//! similarities against the codebook (a chunked GEMM over all bins, on all cores), and the
+//! per-bin log-likelihood.
+//!
+//! Likelihood (PoseRBPF, made robust for several views): with `c` the cosine similarity of a
+//! particle's crop to a bin's code and `c_max` the best similarity of the *view* over all its
+//! particles and bins, `ln L = -(1 - c / c_max)^2 / (2 sigma^2)`, floored at `loglik_floor`
+//! so that one view can never take away more than a bounded factor (a view that disagrees
+//! with the others tempers the fused distribution instead of wiping it out). A view whose
+//! absolute best similarity is below `gate_similarity` does not see the object and adds
+//! nothing. Particles that do not project into a gated view get the floor.
+
+use crate::camera::{ColorImage, DepthImage, Intrinsics};
+use crate::tracker::codebook::Codebook;
+use crate::tracker::encoder::{CropParams, Encoder, normalise_rows, sample_crop};
+use nalgebra::{DMatrixView, DMatrixViewMut, Vector3};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+/// Bins per matching task.
+const MATCH_CHUNK_BINS: usize = 4096;
+/// A crop with fewer valid depth cells than this share is not used.
+const MIN_VALID_SHARE: f64 = 0.25;
+
+/// Parameters of the observation model.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ObservationConfig {
+    /// Sigma of the Gaussian on `c / c_max` around 1.
+    pub sigma: f32,
+    /// Lowest log-likelihood one view can give a bin.
+    pub loglik_floor: f32,
+    /// A view whose best absolute similarity is below this does not see the object.
+    pub gate_similarity: f32,
+    /// Sigma of the depth-consistency term (on `score / max score`).
+    pub depth_sigma: f32,
+    /// Lowest log term of the depth check per view.
+    pub depth_floor: f32,
+}
+
+impl Default for ObservationConfig {
+    fn default() -> Self {
+        Self {
+            sigma: 0.06,
+            loglik_floor: -12.0,
+            gate_similarity: 0.35,
+            depth_sigma: 0.15,
+            depth_floor: -6.0,
+        }
+    }
+}
+
+/// What one view says about one object's particles.
+#[derive(Debug, Clone)]
+pub struct ViewEvidence {
+    /// Log-likelihood per (view bin, particle), bin-major (only when the view is gated in).
+    pub loglik: Vec<f32>,
+    /// Log depth-consistency term per particle.
+    pub depth_log: Vec<f32>,
+    /// Best absolute similarity over valid particles and bins.
+    pub best_similarity: f32,
+    /// Particles whose crop was usable.
+    pub valid: Vec<bool>,
+    pub crops_s: f64,
+    pub encoding_s: f64,
+    pub matching_s: f64,
+    pub likelihoods_s: f64,
+}
+
+/// One camera image with its intrinsics.
+pub struct ViewImage<'a> {
+    pub intrinsics: &'a Intrinsics,
+    pub depth: &'a DepthImage,
+    pub color: Option<&'a ColorImage>,
+}
+
+/// Crops and codes of particles at `positions_in_view_m`; returns (codes row-major `n x k`
+/// unit rows, valid flags, depth scores, crop seconds, encoding seconds).
+pub fn encode_particles(
+    codebook: &Codebook,
+    view: &ViewImage,
+    positions_in_view_m: &[Vector3<f64>],
+) -> (Vec<f32>, Vec<bool>, Vec<f32>, f64, f64) {
+    let t0 = Instant::now();
+    let layout = codebook.layout();
+    let d = layout.dim();
+    let f = layout.feature_px;
+    let n = positions_in_view_m.len();
+    let side_m = codebook.crop_side_m();
+    let box_m = codebook.box_m();
+    let k = view.intrinsics;
+    let crops: Vec<(Vec<f32>, Vec<bool>, bool, f32)> = positions_in_view_m
+        .par_iter()
+        .map(|p| {
+            let mut x = vec![0f32; d];
+            let mut m = vec![true; d];
+            if p.z < 0.05 {
+                return (x, m, false, 0.0);
+            }
+            let uv = [k.fx() * p.x / p.z + k.cx(), k.fy() * p.y / p.z + k.cy()];
+            if uv[0] < 0.0 || uv[1] < 0.0 || uv[0] >= k.width as f64 || uv[1] >= k.height as f64 {
+                return (x, m, false, 0.0);
+            }
+            let params = CropParams {
+                centre_px: uv,
+                side_px: k.fx() * side_m / p.z,
+                rotation_rad: 0.0,
+                z_centre_m: p.z,
+                box_m,
+                zero_is_far: false,
+            };
+            let share = sample_crop(&layout, view.depth, view.color, &params, &mut x, &mut m);
+            // depth consistency: share of the central cells whose depth lies inside the box
+            let (mut inside, mut total) = (0usize, 0usize);
+            for i in f / 4..f - f / 4 {
+                for j in f / 4..f - f / 4 {
+                    let c = i * f + j;
+                    if !m[c] {
+                        total += 1;
+                        if x[c] > 0.0 && x[c] < 1.0 {
+                            inside += 1;
+                        }
+                    }
+                }
+            }
+            let score = if total > 0 { inside as f32 / total as f32 } else { 0.0 };
+            (x, m, share >= MIN_VALID_SHARE, score)
+        })
+        .collect();
+    let crops_s = t0.elapsed().as_secs_f64();
+    let t1 = Instant::now();
+    let mut x = Vec::with_capacity(n * d);
+    let mut mask = Vec::with_capacity(n * d);
+    let mut valid = Vec::with_capacity(n);
+    let mut score = Vec::with_capacity(n);
+    for (cx, cm, v, s) in crops {
+        x.extend(cx);
+        mask.extend(cm);
+        valid.push(v);
+        score.push(s);
+    }
+    let kd = codebook.code_dim();
+    let mut codes = vec![0f32; n * kd];
+    if n > 0 {
+        codebook.encoder.encode_observations(&x, &mask, n, &mut codes);
+    }
+    for (p, v) in valid.iter().enumerate() {
+        if !v {
+            codes[p * kd..(p + 1) * kd].fill(0.0);
+        }
+    }
+    normalise_rows(&mut codes, kd);
+    (codes, valid, score, crops_s, t1.elapsed().as_secs_f64())
+}
+
+/// Cosine similarities of `n` unit codes (row-major `n x k`) with every codebook code, into
+/// `out` (bin-major: `out[b * n + p]`), in chunks of bins over all threads.
+pub fn match_codes(codebook: &Codebook, codes: &[f32], n: usize, out: &mut Vec<f32>) {
+    let kd = codebook.code_dim();
+    let nb = codebook.n_bins();
+    out.resize(nb * n, 0.0);
+    if n == 0 {
+        return;
+    }
+    let qt = DMatrixView::from_slice_with_strides(codes, n, kd, kd, 1);
+    out.par_chunks_mut(MATCH_CHUNK_BINS * n).enumerate().for_each(|(c, chunk)| {
+        let b0 = c * MATCH_CHUNK_BINS;
+        let len = chunk.len() / n;
+        let cv = DMatrixView::from_slice(&codebook.codes[b0 * kd..(b0 + len) * kd], kd, len);
+        let mut sv = DMatrixViewMut::from_slice(chunk, n, len);
+        sv.gemm(1.0, &qt, &cv, 0.0);
+    });
+}
+
+/// The evidence of one view for particles at `positions_in_view_m`, or `None` when the view
+/// does not see the object (no usable crop, or best similarity below the gate). `sim` is a
+/// reusable buffer (it holds the log-likelihood afterwards, moved into the result).
+pub fn observe_view(
+    codebook: &Codebook,
+    view: &ViewImage,
+    positions_in_view_m: &[Vector3<f64>],
+    config: &ObservationConfig,
+    sim: &mut Vec<f32>,
+) -> Option<ViewEvidence> {
+    let n = positions_in_view_m.len();
+    let (codes, valid, score, crops_s, encoding_s) = encode_particles(codebook, view, positions_in_view_m);
+    if !valid.iter().any(|v| *v) {
+        return None;
+    }
+    let t0 = Instant::now();
+    match_codes(codebook, &codes, n, sim);
+    let matching_s = t0.elapsed().as_secs_f64();
+    let t1 = Instant::now();
+    let best = sim
+        .par_chunks(n * 1024)
+        .map(|c| {
+            let mut m = f32::NEG_INFINITY;
+            for row in c.chunks(n) {
+                for (v, ok) in row.iter().zip(&valid) {
+                    if *ok && *v > m {
+                        m = *v;
+                    }
+                }
+            }
+            m
+        })
+        .reduce(|| f32::NEG_INFINITY, f32::max);
+    if !(best >= config.gate_similarity) {
+        return None;
+    }
+    let inv = 1.0 / best;
+    let k = -0.5 / (config.sigma * config.sigma);
+    let floor = config.loglik_floor;
+    sim.par_chunks_mut(n * 1024).for_each(|c| {
+        for row in c.chunks_mut(n) {
+            for (v, ok) in row.iter_mut().zip(&valid) {
+                *v = if *ok {
+                    let r = 1.0 - *v * inv;
+                    (k * r * r).max(floor)
+                } else {
+                    floor
+                };
+            }
+        }
+    });
+    let max_score = score.iter().zip(&valid).filter(|(_, v)| **v).map(|(s, _)| *s).fold(0.0f32, f32::max);
+    let kd = -0.5 / (config.depth_sigma * config.depth_sigma);
+    let depth_log: Vec<f32> = score
+        .iter()
+        .zip(&valid)
+        .map(|(s, v)| {
+            if !*v || max_score <= 0.0 {
+                config.depth_floor
+            } else {
+                let r = 1.0 - s / max_score;
+                (kd * r * r).max(config.depth_floor)
+            }
+        })
+        .collect();
+    let likelihoods_s = t1.elapsed().as_secs_f64();
+    Some(ViewEvidence {
+        loglik: std::mem::take(sim),
+        depth_log,
+        best_similarity: best,
+        valid,
+        crops_s,
+        encoding_s,
+        matching_s,
+        likelihoods_s,
+    })
+}
