@@ -325,20 +325,28 @@ fn free_port() -> u16 {
     l.local_addr().expect("local address").port()
 }
 
-/// `pregrasp serve --demo` as a child process, killed when dropped.
-struct DemoServer {
+/// `pregrasp serve` as a child process with a fresh data folder, killed when dropped.
+struct ServiceProcess {
     child: tokio::process::Child,
     log: PathBuf,
     base_url: String,
+    _data_dir: tempfile::TempDir,
 }
 
-impl DemoServer {
-    async fn start() -> DemoServer {
+impl ServiceProcess {
+    /// Starts `pregrasp serve --addr 127.0.0.1:<free port> --data-dir <tmp> <extra>` and waits
+    /// for `/healthz`; `name` names the log file in the target folder.
+    async fn start(extra: &[&str], name: &str) -> ServiceProcess {
         let port = free_port();
-        let log = target_dir().join("dashboard-demo-server.log");
+        let data_dir = tempfile::tempdir().expect("data dir");
+        let log = target_dir().join(format!("dashboard-{name}-server.log"));
         let log_file = std::fs::File::create(&log).expect("server log file");
+        let addr = format!("127.0.0.1:{port}");
+        let data = data_dir.path().display().to_string();
+        let mut args = vec!["serve", "--addr", addr.as_str(), "--data-dir", data.as_str()];
+        args.extend_from_slice(extra);
         let child = tokio::process::Command::new(env!("CARGO_BIN_EXE_pregrasp"))
-            .args(["serve", "--demo", "--addr", &format!("127.0.0.1:{port}")])
+            .args(&args)
             .env(
                 "WGPU_BACKEND",
                 std::env::var("WGPU_BACKEND").unwrap_or_else(|_| "vulkan".into()),
@@ -348,14 +356,37 @@ impl DemoServer {
             .stderr(log_file)
             .kill_on_drop(true)
             .spawn()
-            .expect("start pregrasp serve --demo");
-        let mut server = DemoServer {
+            .expect("start pregrasp serve");
+        let mut server = ServiceProcess {
             child,
             log,
-            base_url: format!("http://127.0.0.1:{port}"),
+            base_url: format!("http://{addr}"),
+            _data_dir: data_dir,
         };
         server.wait_healthy(Duration::from_secs(180)).await;
         server
+    }
+
+    /// The binary embeds static/ at compile time: fail clearly if it serves other bytes than
+    /// the files on disk (a stale build).
+    async fn assert_serves_current_static_files(&self) {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("static");
+        for entry in std::fs::read_dir(&dir).expect("static/").filter_map(Result::ok) {
+            let name = entry.file_name().to_string_lossy().to_string();
+            let on_disk = std::fs::read(entry.path()).expect("static file");
+            let served = reqwest::get(format!("{}/{name}", self.base_url))
+                .await
+                .and_then(|r| r.error_for_status())
+                .expect("GET static file")
+                .bytes()
+                .await
+                .expect("body");
+            assert!(
+                served.as_ref() == on_disk.as_slice(),
+                "the server's embedded static/{name} differs from the file on disk: rebuild the \
+                 binary (include_dir does not track static/ on stable Rust)"
+            );
+        }
     }
 
     fn log_tail(&self) -> String {
@@ -374,11 +405,11 @@ impl DemoServer {
                 return;
             }
             if let Ok(Some(status)) = self.child.try_wait() {
-                panic!("pregrasp serve --demo exited with {status}; log:\n{}", self.log_tail());
+                panic!("pregrasp serve exited with {status}; log:\n{}", self.log_tail());
             }
             assert!(
                 Instant::now() < deadline,
-                "pregrasp serve --demo not healthy after {timeout:?}; log:\n{}",
+                "pregrasp serve not healthy after {timeout:?}; log:\n{}",
                 self.log_tail()
             );
             tokio::time::sleep(Duration::from_millis(250)).await;
@@ -390,7 +421,8 @@ impl DemoServer {
 #[ignore = "waits for `pregrasp serve --demo` from the api branch"]
 async fn dashboard_follows_pregrasp_serve_demo() {
     let _one = ONE_AT_A_TIME.lock().await;
-    let server = DemoServer::start().await;
+    let server = ServiceProcess::start(&["--demo"], "demo").await;
+    server.assert_serves_current_static_files().await;
     let mut browser = Browser::launch(WIDTH_PX, HEIGHT_PX).await.expect("launch Chromium");
     let page = &mut browser.page;
     check_live_dashboard(page, &server.base_url).await;
@@ -415,4 +447,48 @@ async fn dashboard_follows_pregrasp_serve_demo() {
     );
     browser.close().await;
     drop(server);
+}
+
+/// The real service with no data: the embedded page loads, connects to the real event stream,
+/// shows the service's stats and that nothing is tracked, without script errors.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn dashboard_loads_from_real_service_without_data() {
+    let _one = ONE_AT_A_TIME.lock().await;
+    let server = ServiceProcess::start(&[], "empty").await;
+    server.assert_serves_current_static_files().await;
+    let mut browser = Browser::launch(WIDTH_PX, HEIGHT_PX).await.expect("launch Chromium");
+    let page = &mut browser.page;
+    page.navigate(&format!("{}/", server.base_url))
+        .await
+        .expect("open dashboard");
+    page.wait_for(
+        "document.body.dataset.connection === 'live'",
+        WAIT,
+        "the event stream to connect",
+    )
+    .await
+    .expect("connected");
+    page.wait_for(
+        "document.getElementById('stats').textContent.includes('tracker')",
+        WAIT,
+        "the service's stats event",
+    )
+    .await
+    .expect("stats shown");
+    let empty = page
+        .eval("document.body.dataset.tracks === '0' && !document.getElementById('no-tracks').hidden")
+        .await
+        .expect("empty state");
+    assert_eq!(empty, serde_json::Value::Bool(true), "an empty service shows no tracks");
+    let errors = page
+        .eval("document.documentElement.dataset.jsErrors ?? ''")
+        .await
+        .expect("errors hook");
+    assert_eq!(
+        errors.as_str(),
+        Some(""),
+        "script errors in the page:\n{}",
+        server.log_tail()
+    );
+    browser.close().await;
 }
