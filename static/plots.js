@@ -115,7 +115,10 @@ export class TimePlot {
       yMin = 0;
       yMax = 1;
     }
-    if (o.logY) {
+    if (o.logY && visible.length === 0) {
+      yMin = 1e-3;
+      yMax = 1e-1;
+    } else if (o.logY) {
       yMin = Math.max(yMin, 1e-6);
       yMax = Math.max(yMax, yMin * 10);
     } else if (yMax - yMin < 1e-12) {

@@ -492,3 +492,28 @@ async fn dashboard_loads_from_real_service_without_data() {
     );
     browser.close().await;
 }
+
+/// Developer tool, not part of the suite: screenshots a dashboard that is already running, e.g.
+/// `PREGRASP_DASHBOARD_URL=http://127.0.0.1:8080 cargo test --test dashboard -- --ignored
+/// screenshot_running`, after waiting `PREGRASP_DASHBOARD_WAIT_S` (default 10) seconds.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "needs a running service at $PREGRASP_DASHBOARD_URL"]
+async fn screenshot_running_dashboard() {
+    let url = std::env::var("PREGRASP_DASHBOARD_URL").expect("set PREGRASP_DASHBOARD_URL");
+    let wait_s: u64 = std::env::var("PREGRASP_DASHBOARD_WAIT_S")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(10);
+    let mut browser = Browser::launch(WIDTH_PX, HEIGHT_PX).await.expect("launch Chromium");
+    let page = &mut browser.page;
+    page.navigate(&format!("{url}/")).await.expect("open dashboard");
+    tokio::time::sleep(Duration::from_secs(wait_s)).await;
+    let hooks = page
+        .eval("JSON.stringify({...document.body.dataset, errors: document.documentElement.dataset.jsErrors})")
+        .await
+        .expect("hooks");
+    let shot = target_dir().join("dashboard-screenshot-running.png");
+    page.screenshot(&shot).await.expect("screenshot");
+    eprintln!("hooks: {hooks}\nscreenshot: {}", shot.display());
+    browser.close().await;
+}
