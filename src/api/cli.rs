@@ -64,10 +64,15 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
             if config.token.is_some() { "required" } else { "off" }
         );
         let handle = super::start_background(&state);
-        if args.demo {
-            super::demo::start(state.clone())?;
-        }
+        let demo = if args.demo {
+            Some(super::demo::start(state.clone())?)
+        } else {
+            None
+        };
         super::serve_on(listener, state.clone(), shutdown_signal()).await?;
+        if let Some(stop) = demo {
+            stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        }
         handle.shutdown().await;
         tracing::info!("pregrasp stopped");
         anyhow::Ok(())

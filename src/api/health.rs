@@ -120,6 +120,21 @@ async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
         "Latency of the last step",
         m.last_step_latency_us.load(Ordering::Relaxed) as f64 * 1e-6,
     );
+    {
+        let ring = m.ingest_to_estimate_us.lock().unwrap_or_else(|p| p.into_inner());
+        let name = "pregrasp_ingest_to_estimate_seconds";
+        let _ = writeln!(
+            s,
+            "# HELP {name} Time from receiving a frame to publishing the estimate that fused it (last {} frames)\n# TYPE {name} summary",
+            super::LatencyRing::CAPACITY
+        );
+        for q in [0.5, 0.9, 0.99] {
+            if let Some(us) = ring.quantile_us(q) {
+                let _ = writeln!(s, "{name}{{quantile=\"{q}\"}} {}", us as f64 * 1e-6);
+            }
+        }
+        let _ = writeln!(s, "{name}_count {}", ring.len());
+    }
     ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], s)
 }
 

@@ -9,6 +9,7 @@
 
 pub mod cameras;
 pub mod cli;
+pub mod codebooks;
 pub mod decisions;
 pub mod demo;
 pub mod error;
@@ -58,6 +59,10 @@ pub struct ApiConfig {
     pub window_ns: i64,
     /// Unprocessed frames kept per camera before the oldest is dropped (the bounded queue).
     pub max_pending_per_camera: usize,
+    /// Tracker settings.
+    pub tracker: crate::tracker::TrackerConfig,
+    /// Codebook grids and settings (coarse first, then optionally fine).
+    pub codebooks: codebooks::CodebookPlan,
 }
 
 impl ApiConfig {
@@ -68,6 +73,8 @@ impl ApiConfig {
             max_body_bytes: 32 * 1024 * 1024,
             window_ns: 300_000_000,
             max_pending_per_camera: 4,
+            tracker: crate::tracker::TrackerConfig::default(),
+            codebooks: codebooks::CodebookPlan::default(),
         }
     }
 }
@@ -85,6 +92,40 @@ pub struct Metrics {
     pub last_step_latency_us: AtomicU64,
     pub decisions: AtomicU64,
     pub requests_rejected: AtomicU64,
+    /// Ingest-to-estimate latencies of the most recent frames, microseconds.
+    pub ingest_to_estimate_us: Mutex<LatencyRing>,
+}
+
+/// The last [`LatencyRing::CAPACITY`] latencies (bounded), for quantiles.
+#[derive(Default)]
+pub struct LatencyRing {
+    values_us: std::collections::VecDeque<u64>,
+}
+
+impl LatencyRing {
+    pub const CAPACITY: usize = 20_000;
+    pub fn push(&mut self, us: u64) {
+        self.values_us.push_back(us);
+        if self.values_us.len() > Self::CAPACITY {
+            self.values_us.pop_front();
+        }
+    }
+    pub fn len(&self) -> usize {
+        self.values_us.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.values_us.is_empty()
+    }
+    /// The `q` quantile (0..=1), microseconds.
+    pub fn quantile_us(&self, q: f64) -> Option<u64> {
+        let mut v: Vec<u64> = self.values_us.iter().copied().collect();
+        if v.is_empty() {
+            return None;
+        }
+        v.sort_unstable();
+        let i = ((v.len() - 1) as f64 * q.clamp(0.0, 1.0)).round() as usize;
+        Some(v[i])
+    }
 }
 
 /// What the registry knows (in memory; every change is also written to the store).
@@ -109,6 +150,9 @@ pub struct Shared {
     pub metrics: Metrics,
     pub tracking: tracks::Tracking,
     pub grasp_objects: decisions::GraspObjects,
+    pub codebooks: codebooks::Codebooks,
+    /// The tracker (built when the first frame arrives; rebuilt when the cameras change).
+    pub engine: Mutex<Option<worker::Engine>>,
     /// The support plane (world frame) when one is known (demo, replay of a rig with one).
     pub support_plane: Mutex<Option<scene::PlaneDto>>,
     /// Ground truth for display only (`world_from_object` and its stamp per object id).
@@ -137,6 +181,8 @@ impl AppState {
         cameras::load(&store, &mut registry)?;
         objects::load(&store, &mut registry)?;
         grippers::load(&store, &mut registry)?;
+        let tracking = tracks::Tracking::default();
+        tracks::load(&store, &tracking)?;
         let (events, _) = broadcast::channel(256);
         error::BODY_LIMIT_BYTES.store(config.max_body_bytes, Ordering::Relaxed);
         let ingest = ingest::IngestBuffer::new(config.window_ns, config.max_pending_per_camera);
@@ -148,8 +194,10 @@ impl AppState {
             wake: std::sync::Condvar::new(),
             events,
             metrics: Metrics::default(),
-            tracking: tracks::Tracking::default(),
+            tracking,
             grasp_objects: decisions::GraspObjects::default(),
+            codebooks: codebooks::Codebooks::default(),
+            engine: Mutex::new(None),
             support_plane: Mutex::new(None),
             truth: Mutex::new(BTreeMap::new()),
             stats: Mutex::new(events::Stats::default()),

@@ -146,6 +146,35 @@ impl Tracking {
     }
 }
 
+/// Loads the saved track snapshots (their last published state; shown until the tracker
+/// publishes a newer one).
+pub(super) fn load(store: &super::store::Store, tracking: &Tracking) -> anyhow::Result<()> {
+    let mut b = tracking.board_mut();
+    for (_, view) in store.list::<TrackView>(super::store::Table::Tracks)? {
+        b.views.insert(view.id, view);
+    }
+    Ok(())
+}
+
+/// Saves every track's current view in one transaction (called periodically by the worker).
+pub fn save_snapshots(state: &AppState) -> Result<(), ApiError> {
+    let records: Vec<(String, Vec<u8>)> = state
+        .tracking
+        .board()
+        .views
+        .values()
+        .map(|v| {
+            // Compact: no particles or samples.
+            let mut v = v.clone();
+            v.particles.clear();
+            v.samples_world.clear();
+            (v.id.to_string(), serde_json::to_vec(&v).unwrap_or_default())
+        })
+        .collect();
+    state.store.put_many(super::store::Table::Tracks, &records)?;
+    Ok(())
+}
+
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
         .routes(routes!(list_tracks))

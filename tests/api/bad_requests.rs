@@ -4,9 +4,14 @@ use crate::{TestApp, assert_problem, camera_spec, frame_json, spawn_app};
 use serde_json::{Value, json};
 
 async fn snapshot(app: &TestApp) -> (Value, Value, Value, Value) {
+    let mut objects = app.get_json("/objects").await;
+    // The codebook builds in the background: its status is not what the requests could change.
+    for o in objects.as_array_mut().into_iter().flatten() {
+        o["codebook"] = Value::Null;
+    }
     (
         app.get_json("/cameras").await,
-        app.get_json("/objects").await,
+        objects,
         app.get_json("/grippers").await,
         app.get_json("/tracks").await,
     )

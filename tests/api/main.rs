@@ -5,6 +5,7 @@ mod bad_requests;
 mod ingest;
 mod openapi;
 mod registry;
+mod tracking;
 
 use pregrasp::api::{ApiConfig, AppState};
 use serde_json::{Value, json};
