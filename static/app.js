@@ -54,6 +54,7 @@ const state = {
   connects: 0,
   trackUpdates: 0,
   historyLoaded: new Set(),
+  userSelected: false,
 };
 
 const colors = {
@@ -359,7 +360,15 @@ function scheduleRender() {
 
 function render() {
   const tracks = [...state.tracks.values()].sort((a, b) => a.id - b.id);
-  if (state.selected !== null && !state.tracks.has(state.selected)) state.selected = tracks[0]?.id ?? null;
+  if (state.selected !== null && !state.tracks.has(state.selected)) {
+    state.selected = tracks[0]?.id ?? null;
+    state.userSelected = false;
+  }
+  // Until the user picks one, select the first object the planner is deciding about.
+  if (!state.userSelected && !state.tracks.get(state.selected)?.decision) {
+    const decided = tracks.find((t) => t.decision);
+    if (decided) state.selected = decided.id;
+  }
   document.body.dataset.tracks = String(tracks.length);
   const sel = state.tracks.get(state.selected);
   const selDecision = sel?.decision ?? tracks.find((t) => t.decision)?.decision;
@@ -383,8 +392,23 @@ function render() {
     // Follow the scene until the user takes the camera (then double click fits again).
     if (tracks.length || state.scene) fitView(false);
   }
+  // One time axis for all plots; the selected object in front, the others faint.
+  let range = null;
+  for (const p of Object.values(plots)) {
+    const e = p.extent();
+    if (e) range = range ? [Math.min(range[0], e[0]), Math.max(range[1], e[1])] : e;
+  }
+  if (range && range[1] - range[0] < 1) range = [range[0], range[0] + 1];
+  const selectedKey = String(state.selected);
+  const isSelected = (key) => key === selectedKey || key.startsWith(`${selectedKey}/`);
   let maxPoints = 0;
   for (const p of Object.values(plots)) {
+    p.setTimeRange(range);
+    if (p.highlight?.selectedKey !== selectedKey) {
+      const h = (key) => isSelected(key);
+      h.selectedKey = selectedKey;
+      p.setHighlight(h);
+    }
     p.draw();
     maxPoints = Math.max(maxPoints, p.pointCount());
   }
@@ -486,6 +510,7 @@ function renderTrackList(tracks) {
     li.append(m);
     li.addEventListener("click", () => {
       state.selected = t.id;
+      state.userSelected = true;
       scheduleRender();
     });
     items.push(li);
@@ -538,8 +563,9 @@ function sceneCenterAndRadius(tracks) {
   const all = [];
   const objects = [];
   for (const cam of state.scene?.cameras ?? []) {
+    // The robot camera may start far away: frame the stationary cameras and the objects.
     const p = parsePose(cam.world_from_camera);
-    if (p) all.push(p.t);
+    if (p && (cam.mount !== "robot" || !tracks.length)) all.push(p.t);
   }
   for (const t of tracks) {
     const p = parsePose(t.world_from_object);
@@ -639,7 +665,7 @@ function buildGeometry(tracks) {
   for (const t of tracks) {
     for (const p of t.particles ?? []) {
       if (!Array.isArray(p.position_world_m)) continue;
-      g.point(p.position_world_m, rgba(colors.cameraCss(p.camera), 0.85), 3.5);
+      g.point(p.position_world_m, rgba(colors.cameraCss(p.camera), 0.9), 4.5);
       particles += 1;
     }
     const mean = parsePose(t.world_from_object);

@@ -73,7 +73,9 @@ export class CameraPanel {
     this.updateCaption();
     const w = camera.intrinsics?.width ?? 640;
     const h = camera.intrinsics?.height ?? 480;
-    this.frame.style.width = `${Math.round((FRAME_HEIGHT_PX * w) / h)}px`;
+    // Shrink with the strip (several cameras side by side), never taller than FRAME_HEIGHT_PX.
+    this.frame.style.aspectRatio = `${w} / ${h}`;
+    this.fig.style.maxWidth = `${Math.round((FRAME_HEIGHT_PX * w) / h)}px`;
   }
 
   updateCaption() {

@@ -11,7 +11,32 @@ export class TimePlot {
     this.options = { xLabel: "time [s]", ...options };
     this.series = new Map(); // key -> { label, color, dash, points: [[t, y]] }
     this.refLines = []; // { y, label, color }
+    this.highlight = null; // key => bool; others are drawn faint and left out of the legend
+    this.timeRange = null; // [tMin, tMax] shared by all plots, or null for this plot's own
     this.dirty = true;
+  }
+
+  setHighlight(predicate) {
+    this.highlight = predicate;
+    this.dirty = true;
+  }
+
+  setTimeRange(range) {
+    if (range && this.timeRange && range[0] === this.timeRange[0] && range[1] === this.timeRange[1]) return;
+    this.timeRange = range;
+    this.dirty = true;
+  }
+
+  /** [first, last] time of all points, or null. */
+  extent() {
+    let lo = Infinity;
+    let hi = -Infinity;
+    for (const s of this.series.values()) {
+      if (!s.points.length) continue;
+      lo = Math.min(lo, s.points[0][0]);
+      hi = Math.max(hi, s.points[s.points.length - 1][0]);
+    }
+    return Number.isFinite(lo) ? [lo, hi] : null;
   }
 
   setSeries(key, label, color, dash = []) {
@@ -85,7 +110,13 @@ export class TimePlot {
     const pw = W - pad.left - pad.right;
     const ph = H - pad.top - pad.bottom;
 
-    const visible = [...this.series.values()].filter((s) => s.points.length > 0);
+    const isMain = (key) => !this.highlight || this.highlight(key);
+    const entries = [...this.series.entries()].filter(([, s]) => s.points.length > 0);
+    // Faint series first so that the highlighted ones are drawn on top.
+    entries.sort((a, b) => Number(isMain(a[0])) - Number(isMain(b[0])));
+    const visible = entries.map(([, s]) => s);
+    const mainSeries = entries.filter(([k]) => isMain(k)).map(([, s]) => s);
+    const faintCount = entries.length - mainSeries.length;
     let tMin = Infinity;
     let tMax = -Infinity;
     let yMin = Infinity;
@@ -108,6 +139,7 @@ export class TimePlot {
       tMin = 0;
       tMax = 10;
     }
+    if (this.timeRange) [tMin, tMax] = this.timeRange;
     if (tMax - tMin < 1) tMax = tMin + 1;
     if (o.yMin !== undefined) yMin = o.yMin;
     if (o.yMax !== undefined) yMax = o.yMax;
@@ -199,10 +231,12 @@ export class TimePlot {
     ctx.rect(pad.left, pad.top, pw, ph);
     ctx.clip();
     let drawn = 0;
-    for (const s of visible) {
+    for (const [key, s] of entries) {
+      const main = isMain(key);
+      ctx.globalAlpha = main ? 1 : 0.35;
       ctx.strokeStyle = s.color;
       ctx.fillStyle = s.color;
-      ctx.lineWidth = 1.8;
+      ctx.lineWidth = main ? 2 : 1;
       ctx.setLineDash(s.dash);
       ctx.beginPath();
       let started = false;
@@ -224,6 +258,7 @@ export class TimePlot {
         ctx.fill();
       }
     }
+    ctx.globalAlpha = 1;
     ctx.restore();
 
     // Legend (top right, inside the frame).
@@ -231,7 +266,9 @@ export class TimePlot {
     ctx.textAlign = "left";
     ctx.textBaseline = "middle";
     let ly = pad.top + 8;
-    for (const s of visible) {
+    const legend = mainSeries.slice();
+    if (faintCount > 0) legend.push({ label: "other objects", color: "rgba(200,200,210,0.5)", dash: [] });
+    for (const s of legend) {
       const tw = ctx.measureText(s.label).width;
       const lx = pad.left + pw - tw - 30;
       ctx.fillStyle = "rgba(20,22,27,0.75)";
