@@ -157,7 +157,12 @@ async function resyncTracks() {
       seen.add(t.id);
       upsertTrack(t);
     }
-    for (const id of [...state.tracks.keys()]) if (!seen.has(id)) state.tracks.delete(id);
+    for (const id of [...state.tracks.keys()]) {
+      if (seen.has(id)) continue;
+      state.tracks.delete(id);
+      const key = String(id);
+      for (const p of Object.values(plots)) p.removeWhere((k) => k === key || k.startsWith(`${key}/`));
+    }
     scheduleRender();
   } catch (e) {
     console.warn("tracks resync failed", e);

@@ -62,7 +62,7 @@ export class CameraPanel {
     this.img.addEventListener("error", () => {
       this.loading = false;
       this.placeholder.hidden = false;
-      this.placeholder.textContent = `no ${this.kind} image yet`;
+      this.placeholder.textContent = `no ${this.kind === "depth" ? "depth" : "colour"} image yet`;
     });
     this.setCamera(camera);
   }
@@ -80,7 +80,8 @@ export class CameraPanel {
 
   updateCaption() {
     this.swatch.style.background = this.colors.cameraCss(this.camera.id);
-    this.title.textContent = `${this.camera.id} (${this.camera.mount}) · ${this.kind}`;
+    const kindLabel = this.kind === "depth" ? "depth" : "colour";
+    this.title.textContent = `${this.camera.id} (${this.camera.mount}) · ${kindLabel}`;
     this.toggle.textContent = this.kind === "depth" ? "colour" : "depth";
   }
 

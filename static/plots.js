@@ -16,6 +16,12 @@ export class TimePlot {
     this.dirty = true;
   }
 
+  /** Drops the series whose key matches (e.g. of a track the service deleted). */
+  removeWhere(predicate) {
+    for (const key of [...this.series.keys()]) if (predicate(key)) this.series.delete(key);
+    this.dirty = true;
+  }
+
   setHighlight(predicate) {
     this.highlight = predicate;
     this.dirty = true;

@@ -222,6 +222,18 @@ async fn dashboard_shows_live_mock_service_and_reconnects() {
         "main reason shown from decision.reasons: {reason}"
     );
 
+    // The first camera's button switches its panel to the colour image.
+    page.eval("document.querySelector('.camera-panel button').click()")
+        .await
+        .expect("click toggle");
+    page.wait_for(
+        "(() => { const f = document.querySelector('.camera-panel'); return f.querySelector('img').src.includes('color.png') && f.dataset.imageLoaded === 'true' && f.querySelector('.camera-title').textContent.endsWith('colour'); })()",
+        WAIT,
+        "the colour image in the first camera panel",
+    )
+    .await
+    .expect("colour image");
+
     // Clicking the second object selects it; dragging and the wheel move the 3D camera.
     page.eval("document.querySelectorAll('.track')[1].click()")
         .await
