@@ -358,6 +358,10 @@ function scheduleRender() {
         renderPending = false;
         lastRenderMs = performance.now();
         render();
+        // Cost of one redraw (DOM, 3D geometry, plots, overlays), smoothed: a test hook.
+        const ms = performance.now() - lastRenderMs;
+        state.renderMs = state.renderMs === undefined ? ms : 0.9 * state.renderMs + 0.1 * ms;
+        document.body.dataset.renderMs = state.renderMs.toFixed(2);
       }),
     wait,
   );
@@ -731,7 +735,7 @@ function drawGripper(g, t, worldFromObject) {
   g.line(P(-halfOpening, 0, -finger), P(-halfOpening, 0, tip), col);
   g.line(P(halfOpening, 0, -finger), P(halfOpening, 0, tip), col);
   g.line(P(0, 0, -finger), P(0, 0, -finger - 0.06), col);
-  g.label(P(0, 0, -finger - 0.06), `gripper (${verdict})`, css);
+  // No text label: the legend explains the two colours, and labels near objects pile up.
 }
 
 // ---- start ---------------------------------------------------------------------------------

@@ -442,12 +442,14 @@ async fn dashboard_follows_pregrasp_serve_demo() {
     let t0 = Instant::now();
     let rate = measure_update_rate_hz(page, window).await;
     let track_rate = (body_number(page, "trackUpdates").await - track_updates_before) / t0.elapsed().as_secs_f64();
+    let render_ms = body_number(page, "renderMs").await;
     let shot = target_dir().join("dashboard-screenshot.png");
     let bytes = page.screenshot(&shot).await.expect("screenshot");
     let weight = page_weight_bytes();
     eprintln!(
         "dashboard (pregrasp serve --demo): page weight {weight} B, update rate seen by the page \
-         {rate:.1} events/s ({track_rate:.1} track events/s) over {window:?}, screenshot {} ({bytes} B)",
+         {rate:.1} events/s ({track_rate:.1} track events/s) over {window:?}, redraw {render_ms:.1} ms \
+         (smoothed), screenshot {} ({bytes} B)",
         shot.display()
     );
     assert!(
