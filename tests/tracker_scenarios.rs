@@ -9,10 +9,7 @@ use tracker_support::*;
 
 fn box_symmetries() -> Vec<UnitQuaternion<f64>> {
     // the built-in box: +x half coloured differently, so only the flip about x remains
-    vec![UnitQuaternion::from_axis_angle(
-        &Vector3::x_axis(),
-        std::f64::consts::PI,
-    )]
+    vec![UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)]
 }
 
 #[test]

@@ -66,13 +66,7 @@ pub fn frame(
         .depth
         .data_m
         .iter()
-        .map(|&d| {
-            if d > 0.0 {
-                d * (1.0 + (noise_rel * (rng.random::<f64>() * 2.0 - 1.0) * 1.7) as f32)
-            } else {
-                0.0
-            }
-        })
+        .map(|&d| if d > 0.0 { d * (1.0 + (noise_rel * (rng.random::<f64>() * 2.0 - 1.0) * 1.7) as f32) } else { 0.0 })
         .collect();
     let mut dets = Vec::new();
     if detections {
@@ -132,11 +126,7 @@ pub fn translation_error(est: &Pose, truth: &Pose) -> f64 {
 }
 
 /// Smallest rotation angle between `est` and `truth * s` over the symmetries `s`.
-pub fn rotation_error_deg(
-    est: &UnitQuaternion<f64>,
-    truth: &UnitQuaternion<f64>,
-    symmetries: &[UnitQuaternion<f64>],
-) -> f64 {
+pub fn rotation_error_deg(est: &UnitQuaternion<f64>, truth: &UnitQuaternion<f64>, symmetries: &[UnitQuaternion<f64>]) -> f64 {
     let mut best = est.angle_to(truth);
     for s in symmetries {
         best = best.min(est.angle_to(&(truth * s)));
