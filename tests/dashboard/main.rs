@@ -529,3 +529,64 @@ async fn screenshot_running_dashboard() {
     eprintln!("hooks: {hooks}\nscreenshot: {}", shot.display());
     browser.close().await;
 }
+
+/// The page's pose and pinhole maths (static/math.js), run in the browser: a point the mock's
+/// stationary camera looks at projects to the principal point, unprojection inverts
+/// projection, and composing a pose with its inverse gives the identity.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn dashboard_math_matches_the_camera_conventions() {
+    let _one = ONE_AT_A_TIME.lock().await;
+    let server = mock::spawn().await;
+    let base_url = format!("http://{}", server.addr);
+    let mut browser = Browser::launch(800, 600).await.expect("launch Chromium");
+    let page = &mut browser.page;
+    page.navigate(&format!("{base_url}/")).await.expect("open dashboard");
+    page.wait_for("document.body?.dataset.connection === 'live'", WAIT, "the page")
+        .await
+        .expect("page loaded");
+    let result = page
+        .eval(
+            "(async () => {
+               const m = await import('/math.js');
+               const scene = await (await fetch('/api/v1/scene')).json();
+               const cam = scene.cameras.find((c) => c.id === 'ext1');
+               const worldFromCamera = m.parsePose(cam.world_from_camera);
+               const k = cam.intrinsics.k;
+               const target = m.transformPoint(m.invertPose(worldFromCamera), [0.0, 0.05, 0.05]);
+               const uv = m.projectPixel(k, target);
+               const back = m.unprojectPixel(k, 100.5, 400.25, 0.8);
+               const uv2 = m.projectPixel(k, back);
+               const id = m.composePose(worldFromCamera, m.invertPose(worldFromCamera));
+               const behind = m.projectPixel(k, [0.1, 0.1, -1.0]);
+               const uvFlat = m.projectPixel(k.flat(), target); // the service sends k flat, row-major
+               return { uv, uvFlat, uv2, depth: target[2], idT: id.t, idQ: id.q, behind };
+             })()",
+        )
+        .await
+        .expect("math module");
+    let num = |v: &serde_json::Value| v.as_f64().expect("number");
+    let uv = &result["uv"];
+    assert!(
+        (num(&uv[0]) - 320.0).abs() < 1e-6 && (num(&uv[1]) - 240.0).abs() < 1e-6,
+        "look-at target projects to the principal point: {uv}"
+    );
+    assert_eq!(result["uvFlat"], result["uv"], "flat and nested k give the same pixel");
+    assert!(num(&result["depth"]) > 0.0, "target in front of the camera");
+    let uv2 = &result["uv2"];
+    assert!(
+        (num(&uv2[0]) - 100.5).abs() < 1e-9 && (num(&uv2[1]) - 400.25).abs() < 1e-9,
+        "unproject then project: {uv2}"
+    );
+    for i in 0..3 {
+        assert!(
+            num(&result["idT"][i]).abs() < 1e-9,
+            "pose * inverse has no translation: {result}"
+        );
+    }
+    assert!(
+        (num(&result["idQ"][3]).abs() - 1.0).abs() < 1e-9,
+        "pose * inverse has no rotation: {result}"
+    );
+    assert!(result["behind"].is_null(), "points behind the camera do not project");
+    browser.close().await;
+}
