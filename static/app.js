@@ -536,6 +536,7 @@ function renderLegend() {
   for (const cam of state.scene?.cameras ?? []) {
     entries.push([colors.cameraCss(cam.id), `camera ${cam.id} (${cam.mount}): frustum + its particles`]);
   }
+  entries.push(["rgba(230,159,0,0.45)", "particle opacity: its weight"]);
   entries.push([OKABE.grey, "table plane (0.1 m grid)"]);
   entries.push(["linear-gradient(90deg,#D55E00 33%,#009E73 33% 66%,#56B4E9 66%)", "axes x / y / z (0.2 m)"]);
   entries.push(["#FFFFFF", "mean pose: mesh wireframe"]);
@@ -672,9 +673,13 @@ function buildGeometry(tracks) {
   // Objects: particles by source camera, mean mesh wireframe, samples, gripper.
   let particles = 0;
   for (const t of tracks) {
+    // Opacity follows the particle's weight (relative to the heaviest of its track).
+    const maxWeight = Math.max(1e-12, ...(t.particles ?? []).map((p) => Number(p.weight) || 0));
     for (const p of t.particles ?? []) {
       if (!Array.isArray(p.position_world_m)) continue;
-      g.point(p.position_world_m, rgba(colors.cameraCss(p.camera), 0.9), 4.5);
+      const w = Number(p.weight);
+      const alpha = Number.isFinite(w) ? 0.35 + 0.65 * Math.min(1, w / maxWeight) : 0.9;
+      g.point(p.position_world_m, rgba(colors.cameraCss(p.camera), alpha), 4.5);
       particles += 1;
     }
     const mean = parsePose(t.world_from_object);

@@ -437,6 +437,14 @@ async fn dashboard_follows_pregrasp_serve_demo() {
     let page = &mut browser.page;
     check_live_dashboard(page, &server.base_url).await;
 
+    // The real camera routes: a latest depth image, its detections and projected particles.
+    page.wait_for(
+        "[...document.querySelectorAll('.camera-panel')].some(f => f.dataset.imageLoaded === 'true' && Number(f.dataset.detections) > 0 && Number(f.dataset.particlesProjected) > 0)",
+        WAIT,
+        "a camera panel with image, detection boxes and projected particles",
+    )
+    .await
+    .expect("camera panel from the real service");
     let track_updates_before = body_number(page, "trackUpdates").await;
     let window = Duration::from_secs(10);
     let t0 = Instant::now();
