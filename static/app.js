@@ -6,7 +6,7 @@
 // (events handled), data-tracks, data-decision (verdict of the selected track),
 // data-particles-drawn (particles in the last 3D frame), data-plot-points (points in the
 // fullest plot), data-event-rate-hz (events/s seen over the last 10 s), data-connects (event
-// stream connections opened).
+// stream connections opened), data-track-updates (`track` events handled).
 
 import { composePose, cross, invertPose, normalize, parsePose, transformPoint, unprojectPixel } from "./math.js";
 import { SceneGeometry, View3D } from "./view3d.js";
@@ -30,9 +30,14 @@ const AXIS_COLORS = [OKABE.vermillion, OKABE.green, OKABE.sky]; // x, y, z
 const EVENT_RATE_WINDOW_MS = 10_000;
 const SCENE_REFRESH_MS = 500;
 const TRACKS_RESYNC_MS = 5_000;
+const MIN_RENDER_INTERVAL_MS = 100;
+const MIN_LIST_INTERVAL_MS = 250;
 const FRUSTUM_DEPTH_M = 0.12;
 const TABLE_HALF_SIZE_M = 0.8;
 const TABLE_CELL_M = 0.1;
+const GRIPPER_FINGER_M = 0.05;
+const DRIVER_MIN_CORRELATION = 0.2;
+const GRIPPER_MARGIN_M = 0.01;
 
 const state = {
   scene: null,
@@ -46,14 +51,21 @@ const state = {
   eventTimes: [],
   stats: null,
   panels: new Map(), // camera id -> CameraPanel
-  fittedOnce: false,
   connects: 0,
+  trackUpdates: 0,
+  historyLoaded: new Set(),
+  userSelected: false,
 };
 
 const colors = {
   cameraCss(id) {
     if (!state.cameraColorIndex.has(id)) state.cameraColorIndex.set(id, state.cameraColorIndex.size);
     return CAMERA_COLORS[state.cameraColorIndex.get(id) % CAMERA_COLORS.length];
+  },
+  /** Display name of an object id (from the tracks), for detection labels. */
+  objectLabel(objectId) {
+    for (const t of state.tracks.values()) if (String(t.object_id) === String(objectId)) return t.object_name ?? objectId;
+    return objectId;
   },
   objectCss(name) {
     if (!state.objectColorIndex.has(name)) state.objectColorIndex.set(name, state.objectColorIndex.size);
@@ -73,6 +85,7 @@ let view = null;
 try {
   view = new View3D(el("view3d"), el("view3d-labels"));
   view.onFit = () => fitView(true);
+  document.body.dataset.renderer = view.renderer;
 } catch (e) {
   el("view-error").hidden = false;
   el("view-error").textContent = `3D view unavailable: ${e.message}`;
@@ -102,6 +115,11 @@ async function getJson(path) {
 async function refreshScene() {
   try {
     state.scene = await getJson("/api/v1/scene");
+    // Camera colours follow the scene's camera order, whatever arrived first.
+    const known = [...state.cameraColorIndex.keys()];
+    state.cameraColorIndex.clear();
+    for (const id of [...(state.scene.cameras ?? []).map((c) => c.id), ...known]) colors.cameraCss(id);
+    for (const panel of state.panels.values()) panel.updateCaption();
     for (const cam of state.scene.cameras ?? []) {
       colors.cameraCss(cam.id);
       let panel = state.panels.get(cam.id);
@@ -139,7 +157,12 @@ async function resyncTracks() {
       seen.add(t.id);
       upsertTrack(t);
     }
-    for (const id of [...state.tracks.keys()]) if (!seen.has(id)) state.tracks.delete(id);
+    for (const id of [...state.tracks.keys()]) {
+      if (seen.has(id)) continue;
+      state.tracks.delete(id);
+      const key = String(id);
+      for (const p of Object.values(plots)) p.removeWhere((k) => k === key || k.startsWith(`${key}/`));
+    }
     scheduleRender();
   } catch (e) {
     console.warn("tracks resync failed", e);
@@ -152,17 +175,24 @@ function timeS(stampNs) {
   return (stampNs - state.t0Ns) / 1e9;
 }
 
+/** Objects are coloured by their id, the key detections carry too. */
+function objectColor(t) {
+  return colors.objectCss(String(t.object_id ?? t.object_name));
+}
+
 function trackLabel(t) {
   return `${t.object_name ?? t.object_id} #${t.id}`;
 }
 
 function upsertTrack(t) {
   const prev = state.tracks.get(t.id);
-  if (prev && t.decision === undefined) t.decision = prev.decision;
+  if (!prev && !state.historyLoaded.has(t.id)) loadHistory(t);
+  // A track event without a decision keeps the last one from the `decision` events.
+  if (prev && (t.decision === undefined || t.decision === null)) t.decision = prev.decision;
   state.tracks.set(t.id, t);
   if (state.selected === null) state.selected = t.id;
   const key = String(t.id);
-  const color = colors.objectCss(t.object_name ?? String(t.object_id));
+  const color = objectColor(t);
   const label = trackLabel(t);
   const tS = timeS(t.stamp_ns);
   plots.std.setSeries(key, label, color);
@@ -183,10 +213,33 @@ function upsertTrack(t) {
 
 function addDecisionPoint(t, d, tS) {
   const key = String(t.id);
-  plots.pSuccess.setSeries(key, trackLabel(t), colors.objectCss(t.object_name ?? String(t.object_id)));
+  plots.pSuccess.setSeries(key, trackLabel(t), objectColor(t));
   plots.pSuccess.add(key, tS, d.p_success);
   if (Number.isFinite(d.threshold)) {
     plots.pSuccess.setRefLines([{ y: d.threshold, label: `threshold ${d.threshold}`, color: OKABE.grey }]);
+  }
+}
+
+/** Fills the plots with what happened before this page was opened (/tracks/{id}/history). */
+async function loadHistory(t) {
+  state.historyLoaded.add(t.id);
+  try {
+    const history = await getJson(`/api/v1/tracks/${encodeURIComponent(t.id)}/history`);
+    if (!Array.isArray(history) || !history.length) return;
+    const key = String(t.id);
+    const pts = (f) => history.map((h) => [timeS(h.stamp_ns), f(h)]).filter(([x, y]) => Number.isFinite(x) && Number.isFinite(y));
+    plots.std.prepend(key, pts((h) => h.translation_std_m));
+    plots.rotation.prepend(`${key}/entropy`, pts((h) => h.rotation_entropy));
+    if (history.some((h) => h.truth)) {
+      const label = trackLabel(t);
+      plots.tErr.setSeries(key, label, objectColor(t));
+      plots.rErr.setSeries(key, label, objectColor(t));
+      plots.tErr.prepend(key, pts((h) => h.truth?.translation_error_m ?? NaN));
+      plots.rErr.prepend(key, pts((h) => h.truth?.orientation_error_deg ?? NaN));
+    }
+    scheduleRender();
+  } catch (e) {
+    console.warn("track history unavailable", e);
   }
 }
 
@@ -267,7 +320,11 @@ function connect() {
       fn(data);
       scheduleRender();
     });
-  handle("track", (t) => upsertTrack(t));
+  handle("track", (t) => {
+    state.trackUpdates += 1;
+    document.body.dataset.trackUpdates = String(state.trackUpdates);
+    upsertTrack(t);
+  });
   handle("decision", (d) => {
     const t = state.tracks.get(d.track_id);
     if (!t) return;
@@ -287,23 +344,52 @@ function connect() {
 // ---- rendering ----------------------------------------------------------------------------
 
 let renderPending = false;
+let lastRenderMs = -Infinity;
+let lastListMs = -Infinity;
+/** Coalesces events into at most one redraw per MIN_RENDER_INTERVAL_MS (the service may publish
+ *  far faster than a person reads; a software-rendered browser should not eat a core). */
 function scheduleRender() {
   if (renderPending) return;
   renderPending = true;
-  requestAnimationFrame(() => {
-    renderPending = false;
-    render();
-  });
+  const wait = Math.max(0, MIN_RENDER_INTERVAL_MS - (performance.now() - lastRenderMs));
+  setTimeout(
+    () =>
+      requestAnimationFrame(() => {
+        renderPending = false;
+        lastRenderMs = performance.now();
+        render();
+        // Cost of one redraw (DOM, 3D geometry, plots, overlays), smoothed: a test hook.
+        const ms = performance.now() - lastRenderMs;
+        state.renderMs = state.renderMs === undefined ? ms : 0.9 * state.renderMs + 0.1 * ms;
+        document.body.dataset.renderMs = state.renderMs.toFixed(2);
+      }),
+    wait,
+  );
 }
 
 function render() {
   const tracks = [...state.tracks.values()].sort((a, b) => a.id - b.id);
-  if (state.selected !== null && !state.tracks.has(state.selected)) state.selected = tracks[0]?.id ?? null;
+  if (state.selected !== null && !state.tracks.has(state.selected)) {
+    state.selected = tracks[0]?.id ?? null;
+    state.userSelected = false;
+  }
+  // Until the user picks one, select the first object the planner is deciding about.
+  if (!state.userSelected && !state.tracks.get(state.selected)?.decision) {
+    const decided = tracks.find((t) => t.decision);
+    if (decided) state.selected = decided.id;
+  }
   document.body.dataset.tracks = String(tracks.length);
   const sel = state.tracks.get(state.selected);
   const selDecision = sel?.decision ?? tracks.find((t) => t.decision)?.decision;
   document.body.dataset.decision = selDecision ? verdictOf(selDecision) : "";
-  renderTrackList(tracks);
+  // The list is rebuilt at a calmer rate so that clicks on it are not lost mid-rebuild.
+  const now = performance.now();
+  if (now - lastListMs >= MIN_LIST_INTERVAL_MS || tracks.length !== el("track-list").childElementCount) {
+    lastListMs = now;
+    renderTrackList(tracks);
+  } else {
+    setTimeout(scheduleRender, MIN_LIST_INTERVAL_MS);
+  }
   renderLegend();
   renderStats();
   if (view) {
@@ -312,10 +398,26 @@ function render() {
       document.body.dataset.particlesDrawn = String(Math.min(particles, view.drawnPoints));
     };
     view.setGeometry(geometry);
-    if (!state.fittedOnce && (tracks.length || state.scene)) fitView(false);
+    // Follow the scene until the user takes the camera (then double click fits again).
+    if (tracks.length || state.scene) fitView(false);
   }
+  // One time axis for all plots; the selected object in front, the others faint.
+  let range = null;
+  for (const p of Object.values(plots)) {
+    const e = p.extent();
+    if (e) range = range ? [Math.min(range[0], e[0]), Math.max(range[1], e[1])] : e;
+  }
+  if (range && range[1] - range[0] < 1) range = [range[0], range[0] + 1];
+  const selectedKey = String(state.selected);
+  const isSelected = (key) => key === selectedKey || key.startsWith(`${selectedKey}/`);
   let maxPoints = 0;
   for (const p of Object.values(plots)) {
+    p.setTimeRange(range);
+    if (p.highlight?.selectedKey !== selectedKey) {
+      const h = (key) => isSelected(key);
+      h.selectedKey = selectedKey;
+      p.setHighlight(h);
+    }
     p.draw();
     maxPoints = Math.max(maxPoints, p.pointCount());
   }
@@ -337,9 +439,19 @@ function mainReason(d) {
   const text = best.message ?? best.description ?? best.text ?? best.summary ?? best.detail;
   const name = best.test ?? best.kind ?? best.name ?? best.reason ?? best.type;
   const pct = share(best) > 0 ? ` (${(share(best) * 100).toFixed(0)} %)` : "";
-  if (text) return `${text}${pct}`;
+  if (text) return text; // the service's message already states the share
   if (name) return `${typeof name === "string" ? name : JSON.stringify(name)}${pct}`;
   return JSON.stringify(best).slice(0, 120);
+}
+
+/** The pose axis whose spread correlates most with failing (decision.uncertainty[0]). */
+function mainDriver(d) {
+  const u = Array.isArray(d?.uncertainty) ? d.uncertainty[0] : null;
+  if (!u || !(Number(u.failure_correlation) >= DRIVER_MIN_CORRELATION)) return "";
+  const motion = typeof u.motion === "string" ? u.motion.toLowerCase() : "";
+  const rotational = motion.startsWith("rot");
+  const spread = rotational ? `${fmt((u.spread * 180) / Math.PI, 1)}°` : `${fmt(u.spread * 1000, 1)} mm`;
+  return `${motion || "offset"} ${rotational ? "about" : "along"} ${u.axis} (spread ${spread}, correlation ${fmt(u.failure_correlation, 2)})`;
 }
 
 function fmt(v, digits = 3) {
@@ -362,7 +474,7 @@ function renderTrackList(tracks) {
     row.className = "row";
     const sw = document.createElement("span");
     sw.className = "swatch";
-    sw.style.background = colors.objectCss(t.object_name ?? String(t.object_id));
+    sw.style.background = objectColor(t);
     const name = document.createElement("span");
     name.className = "name";
     name.textContent = trackLabel(t);
@@ -387,6 +499,13 @@ function renderTrackList(tracks) {
         r.textContent = `Main reason: ${reason}`;
         li.append(r);
       }
+      const driver = mainDriver(d);
+      if (driver) {
+        const r = document.createElement("div");
+        r.className = "reason muted";
+        r.textContent = `Look more along: ${driver}`;
+        li.append(r);
+      }
     }
     const m = document.createElement("div");
     m.className = "metrics";
@@ -400,6 +519,7 @@ function renderTrackList(tracks) {
     li.append(m);
     li.addEventListener("click", () => {
       state.selected = t.id;
+      state.userSelected = true;
       scheduleRender();
     });
     items.push(li);
@@ -407,11 +527,16 @@ function renderTrackList(tracks) {
   list.replaceChildren(...items);
 }
 
+let legendKey = "";
 function renderLegend() {
+  const key = (state.scene?.cameras ?? []).map((c) => `${c.id}:${c.mount}:${colors.cameraCss(c.id)}`).join(",");
+  if (key === legendKey && el("legend").childElementCount) return;
+  legendKey = key;
   const entries = [];
   for (const cam of state.scene?.cameras ?? []) {
     entries.push([colors.cameraCss(cam.id), `camera ${cam.id} (${cam.mount}): frustum + its particles`]);
   }
+  entries.push(["rgba(230,159,0,0.45)", "particle opacity: its weight"]);
   entries.push([OKABE.grey, "table plane (0.1 m grid)"]);
   entries.push(["linear-gradient(90deg,#D55E00 33%,#009E73 33% 66%,#56B4E9 66%)", "axes x / y / z (0.2 m)"]);
   entries.push(["#FFFFFF", "mean pose: mesh wireframe"]);
@@ -443,28 +568,34 @@ function renderStats() {
 }
 setInterval(renderStats, 1000);
 
+/** Centre on the objects (or on everything when none is tracked yet), radius to the cameras. */
 function sceneCenterAndRadius(tracks) {
-  const pts = [];
+  const all = [];
+  const objects = [];
   for (const cam of state.scene?.cameras ?? []) {
+    // The robot camera may start far away: frame the stationary cameras and the objects.
     const p = parsePose(cam.world_from_camera);
-    if (p) pts.push(p.t);
+    if (p && (cam.mount !== "robot" || !tracks.length)) all.push(p.t);
   }
   for (const t of tracks) {
     const p = parsePose(t.world_from_object);
-    if (p) pts.push(p.t);
+    if (p) {
+      all.push(p.t);
+      objects.push(p.t);
+    }
   }
-  if (state.scene?.support_plane?.point_m) pts.push(state.scene.support_plane.point_m);
-  if (!pts.length) return null;
-  const c = [0, 1, 2].map((i) => pts.reduce((s, p) => s + p[i], 0) / pts.length);
-  const r = Math.max(0.3, ...pts.map((p) => Math.hypot(p[0] - c[0], p[1] - c[1], p[2] - c[2])));
-  return { c, r };
+  if (state.scene?.support_plane?.point_m) all.push(state.scene.support_plane.point_m);
+  if (!all.length) return null;
+  const centerOf = (pts) => [0, 1, 2].map((i) => pts.reduce((s, p) => s + p[i], 0) / pts.length);
+  const c = centerOf(objects.length ? objects : all);
+  const far = Math.max(...all.map((p) => Math.hypot(p[0] - c[0], p[1] - c[1], p[2] - c[2])));
+  return { c, r: Math.max(0.3, far) };
 }
 
 function fitView(force) {
   const cr = sceneCenterAndRadius([...state.tracks.values()]);
   if (!cr || !view) return;
   view.fit(cr.c, cr.r, force);
-  state.fittedOnce = true;
 }
 
 function meshWire(g, mesh, pose, color) {
@@ -542,9 +673,13 @@ function buildGeometry(tracks) {
   // Objects: particles by source camera, mean mesh wireframe, samples, gripper.
   let particles = 0;
   for (const t of tracks) {
+    // Opacity follows the particle's weight (relative to the heaviest of its track).
+    const maxWeight = Math.max(1e-12, ...(t.particles ?? []).map((p) => Number(p.weight) || 0));
     for (const p of t.particles ?? []) {
       if (!Array.isArray(p.position_world_m)) continue;
-      g.point(p.position_world_m, rgba(colors.cameraCss(p.camera), 0.85), 3.5);
+      const w = Number(p.weight);
+      const alpha = Number.isFinite(w) ? 0.35 + 0.65 * Math.min(1, w / maxWeight) : 0.9;
+      g.point(p.position_world_m, rgba(colors.cameraCss(p.camera), alpha), 4.5);
       particles += 1;
     }
     const mean = parsePose(t.world_from_object);
@@ -567,7 +702,7 @@ function buildGeometry(tracks) {
         if (sp) g.triad(sp, 0.025, AXIS_COLORS.map((c) => rgba(c, 0.45)), transformPoint);
       }
     }
-    g.label(mean.t, trackLabel(t), colors.objectCss(t.object_name ?? String(t.object_id)));
+    g.label(mean.t, trackLabel(t), objectColor(t));
     drawGripper(g, t, mean);
   }
   return { geometry: g, particles };
@@ -593,15 +728,19 @@ function drawGripper(g, t, worldFromObject) {
   const verdict = verdictOf(d);
   const css = verdict === "grasp" ? OKABE.green : OKABE.orange;
   const col = rgba(css);
-  const halfOpening = Number(d.grasp?.opening_m ?? d.grasp?.width_m ?? 0.08) / 2;
-  const finger = 0.05;
+  // Open around the object's width along the closing axis (grasp.width_m) with a margin.
+  const widthM = Number(d.grasp?.width_m);
+  const halfOpening = (Number.isFinite(widthM) && widthM > 0 ? widthM : 0.08) / 2 + GRIPPER_MARGIN_M;
+  const finger = GRIPPER_FINGER_M;
+  const tip = 0.1 * finger;
   const P = (x, y, z) => transformPoint(worldFromGripper, [x, y, z]);
-  // Fingers from the palm (z = -finger) to the tips (z = 0), palm across x, wrist behind it.
+  // The frame's origin is the tool centre point between the fingers: palm across x behind it,
+  // fingers along +z up to just past it, the wrist further back.
   g.line(P(-halfOpening, 0, -finger), P(halfOpening, 0, -finger), col);
-  g.line(P(-halfOpening, 0, -finger), P(-halfOpening, 0, 0), col);
-  g.line(P(halfOpening, 0, -finger), P(halfOpening, 0, 0), col);
+  g.line(P(-halfOpening, 0, -finger), P(-halfOpening, 0, tip), col);
+  g.line(P(halfOpening, 0, -finger), P(halfOpening, 0, tip), col);
   g.line(P(0, 0, -finger), P(0, 0, -finger - 0.06), col);
-  g.label(P(0, 0, -finger - 0.06), `gripper (${verdict})`, css);
+  // No text label: the legend explains the two colours, and labels near objects pile up.
 }
 
 // ---- start ---------------------------------------------------------------------------------

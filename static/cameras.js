@@ -10,7 +10,7 @@ const FRAME_HEIGHT_PX = 190; // matches .camera-frame in style.css
 export class CameraPanel {
   constructor(container, camera, colors) {
     this.camera = camera; // scene camera entry
-    this.colors = colors; // { cameraCss(id), objectCss(name) }
+    this.colors = colors; // { cameraCss(id), objectCss(objectId), objectLabel(objectId) }
     this.kind = "depth";
     this.detections = [];
     this.lastLoadMs = 0;
@@ -62,7 +62,7 @@ export class CameraPanel {
     this.img.addEventListener("error", () => {
       this.loading = false;
       this.placeholder.hidden = false;
-      this.placeholder.textContent = `no ${this.kind} image yet`;
+      this.placeholder.textContent = `no ${this.kind === "depth" ? "depth" : "colour"} image yet`;
     });
     this.setCamera(camera);
   }
@@ -73,12 +73,15 @@ export class CameraPanel {
     this.updateCaption();
     const w = camera.intrinsics?.width ?? 640;
     const h = camera.intrinsics?.height ?? 480;
-    this.frame.style.width = `${Math.round((FRAME_HEIGHT_PX * w) / h)}px`;
+    // Shrink with the strip (several cameras side by side), never taller than FRAME_HEIGHT_PX.
+    this.frame.style.aspectRatio = `${w} / ${h}`;
+    this.fig.style.maxWidth = `${Math.round((FRAME_HEIGHT_PX * w) / h)}px`;
   }
 
   updateCaption() {
     this.swatch.style.background = this.colors.cameraCss(this.camera.id);
-    this.title.textContent = `${this.camera.id} (${this.camera.mount}) · ${this.kind}`;
+    const kindLabel = this.kind === "depth" ? "depth" : "colour";
+    this.title.textContent = `${this.camera.id} (${this.camera.mount}) · ${kindLabel}`;
     this.toggle.textContent = this.kind === "depth" ? "colour" : "depth";
   }
 
@@ -153,7 +156,7 @@ export class CameraPanel {
       const color = this.colors.objectCss(d.object);
       ctx.strokeStyle = color;
       ctx.strokeRect(b[0] * s, b[1] * s, b[2] * s, b[3] * s);
-      const text = `${d.object} ${Number(d.score ?? 0).toFixed(2)}`;
+      const text = `${this.colors.objectLabel(d.object)} ${Number(d.score ?? 0).toFixed(2)}`;
       const tw = ctx.measureText(text).width;
       ctx.fillStyle = "rgba(0,0,0,0.65)";
       ctx.fillRect(b[0] * s, b[1] * s - 14 * dpr, tw + 4 * dpr, 14 * dpr);

@@ -11,7 +11,38 @@ export class TimePlot {
     this.options = { xLabel: "time [s]", ...options };
     this.series = new Map(); // key -> { label, color, dash, points: [[t, y]] }
     this.refLines = []; // { y, label, color }
+    this.highlight = null; // key => bool; others are drawn faint and left out of the legend
+    this.timeRange = null; // [tMin, tMax] shared by all plots, or null for this plot's own
     this.dirty = true;
+  }
+
+  /** Drops the series whose key matches (e.g. of a track the service deleted). */
+  removeWhere(predicate) {
+    for (const key of [...this.series.keys()]) if (predicate(key)) this.series.delete(key);
+    this.dirty = true;
+  }
+
+  setHighlight(predicate) {
+    this.highlight = predicate;
+    this.dirty = true;
+  }
+
+  setTimeRange(range) {
+    if (range && this.timeRange && range[0] === this.timeRange[0] && range[1] === this.timeRange[1]) return;
+    this.timeRange = range;
+    this.dirty = true;
+  }
+
+  /** [first, last] time of all points, or null. */
+  extent() {
+    let lo = Infinity;
+    let hi = -Infinity;
+    for (const s of this.series.values()) {
+      if (!s.points.length) continue;
+      lo = Math.min(lo, s.points[0][0]);
+      hi = Math.max(hi, s.points[s.points.length - 1][0]);
+    }
+    return Number.isFinite(lo) ? [lo, hi] : null;
   }
 
   setSeries(key, label, color, dash = []) {
@@ -34,6 +65,17 @@ export class TimePlot {
     else if (last && tS < last[0]) return; // out of order: ignore
     else s.points.push([tS, y]);
     if (s.points.length > MAX_POINTS_PER_SERIES) s.points.splice(0, s.points.length - MAX_POINTS_PER_SERIES);
+    this.dirty = true;
+  }
+
+  /** Inserts older points (sorted by time) before the first point of a series. */
+  prepend(key, points) {
+    const s = this.series.get(key);
+    if (!s) return;
+    const first = s.points.length ? s.points[0][0] : Infinity;
+    const older = points.filter(([t, y]) => t < first && Number.isFinite(y));
+    if (!older.length) return;
+    s.points = older.concat(s.points).slice(-MAX_POINTS_PER_SERIES);
     this.dirty = true;
   }
 
@@ -74,7 +116,13 @@ export class TimePlot {
     const pw = W - pad.left - pad.right;
     const ph = H - pad.top - pad.bottom;
 
-    const visible = [...this.series.values()].filter((s) => s.points.length > 0);
+    const isMain = (key) => !this.highlight || this.highlight(key);
+    const entries = [...this.series.entries()].filter(([, s]) => s.points.length > 0);
+    // Faint series first so that the highlighted ones are drawn on top.
+    entries.sort((a, b) => Number(isMain(a[0])) - Number(isMain(b[0])));
+    const visible = entries.map(([, s]) => s);
+    const mainSeries = entries.filter(([k]) => isMain(k)).map(([, s]) => s);
+    const faintCount = entries.length - mainSeries.length;
     let tMin = Infinity;
     let tMax = -Infinity;
     let yMin = Infinity;
@@ -97,6 +145,7 @@ export class TimePlot {
       tMin = 0;
       tMax = 10;
     }
+    if (this.timeRange) [tMin, tMax] = this.timeRange;
     if (tMax - tMin < 1) tMax = tMin + 1;
     if (o.yMin !== undefined) yMin = o.yMin;
     if (o.yMax !== undefined) yMax = o.yMax;
@@ -104,7 +153,10 @@ export class TimePlot {
       yMin = 0;
       yMax = 1;
     }
-    if (o.logY) {
+    if (o.logY && visible.length === 0) {
+      yMin = 1e-3;
+      yMax = 1e-1;
+    } else if (o.logY) {
       yMin = Math.max(yMin, 1e-6);
       yMax = Math.max(yMax, yMin * 10);
     } else if (yMax - yMin < 1e-12) {
@@ -185,10 +237,12 @@ export class TimePlot {
     ctx.rect(pad.left, pad.top, pw, ph);
     ctx.clip();
     let drawn = 0;
-    for (const s of visible) {
+    for (const [key, s] of entries) {
+      const main = isMain(key);
+      ctx.globalAlpha = main ? 1 : 0.35;
       ctx.strokeStyle = s.color;
       ctx.fillStyle = s.color;
-      ctx.lineWidth = 1.8;
+      ctx.lineWidth = main ? 2 : 1;
       ctx.setLineDash(s.dash);
       ctx.beginPath();
       let started = false;
@@ -210,6 +264,7 @@ export class TimePlot {
         ctx.fill();
       }
     }
+    ctx.globalAlpha = 1;
     ctx.restore();
 
     // Legend (top right, inside the frame).
@@ -217,7 +272,9 @@ export class TimePlot {
     ctx.textAlign = "left";
     ctx.textBaseline = "middle";
     let ly = pad.top + 8;
-    for (const s of visible) {
+    const legend = mainSeries.slice();
+    if (faintCount > 0) legend.push({ label: "other objects", color: "rgba(200,200,210,0.5)", dash: [] });
+    for (const s of legend) {
       const tw = ctx.measureText(s.label).width;
       const lx = pad.left + pw - tw - 30;
       ctx.fillStyle = "rgba(20,22,27,0.75)";
@@ -240,6 +297,7 @@ export class TimePlot {
       ctx.fillText("no data yet", pad.left + pw / 2, pad.top + ph / 2);
     }
     c.dataset.plotPoints = String(drawn);
+    c.dataset.tMinS = visible.length ? tMin.toFixed(3) : "";
   }
 }
 
@@ -256,7 +314,14 @@ export function niceTicks(lo, hi, count) {
 
 function logTicks(lo, hi) {
   const out = [];
-  for (let e = Math.floor(Math.log10(lo)); e <= Math.ceil(Math.log10(hi)); e++) out.push(Math.pow(10, e));
+  // Fewer than three decades: label 1, 2 and 5 of each decade so the axis is never bare.
+  const mantissas = Math.log10(hi / lo) < 3 ? [1, 2, 5] : [1];
+  for (let e = Math.floor(Math.log10(lo)); e <= Math.ceil(Math.log10(hi)); e++) {
+    for (const m of mantissas) {
+      const v = m * Math.pow(10, e);
+      if (v >= lo * 0.999 && v <= hi * 1.001) out.push(v);
+    }
+  }
   return out;
 }
 

@@ -68,9 +68,27 @@ export class View3D {
   constructor(canvas, labelCanvas) {
     this.canvas = canvas;
     this.labelCanvas = labelCanvas;
-    const gl = canvas.getContext("webgl", { antialias: true, preserveDrawingBuffer: true });
-    if (!gl) throw new Error("WebGL is not available in this browser");
+    // `?renderer=canvas2d` forces the fallback (used by the browser test).
+    const force2d = new URLSearchParams(location.search).get("renderer") === "canvas2d";
+    const gl = force2d ? null : canvas.getContext("webgl", { antialias: true, preserveDrawingBuffer: true });
     this.gl = gl;
+    this.geometry = new SceneGeometry();
+    // Orbit camera around `target`: yaw about world z, pitch above the xy plane.
+    this.orbit = { target: [0, 0, 0], distanceM: 2.5, yawRad: -2.3, pitchRad: 0.55 };
+    this.userMoved = false;
+    this.dirty = true;
+    this.drawnPoints = 0;
+    this.drawnLines = 0;
+    this.installMouse();
+    new ResizeObserver(() => this.requestDraw()).observe(canvas);
+    if (!gl) {
+      // No WebGL (blocked GPU, old browser): the same picture with Canvas 2D, slower.
+      this.ctx2d = canvas.getContext("2d");
+      if (!this.ctx2d) throw new Error("neither WebGL nor Canvas 2D is available");
+      this.renderer = "canvas2d";
+      return;
+    }
+    this.renderer = "webgl";
     this.program = makeProgram(gl, VERTEX_SHADER, FRAGMENT_SHADER);
     this.loc = {
       position: gl.getAttribLocation(this.program, "a_position"),
@@ -82,15 +100,6 @@ export class View3D {
     };
     this.lineBuffer = gl.createBuffer();
     this.pointBuffer = gl.createBuffer();
-    this.geometry = new SceneGeometry();
-    // Orbit camera around `target`: yaw about world z, pitch above the xy plane.
-    this.orbit = { target: [0, 0, 0], distanceM: 2.5, yawRad: -2.3, pitchRad: 0.55 };
-    this.userMoved = false;
-    this.dirty = true;
-    this.drawnPoints = 0;
-    this.drawnLines = 0;
-    this.installMouse();
-    new ResizeObserver(() => this.requestDraw()).observe(canvas);
   }
 
   setGeometry(geometry) {
@@ -102,7 +111,7 @@ export class View3D {
   fit(center, radiusM, force = false) {
     if (this.userMoved && !force) return;
     this.orbit.target = center.slice();
-    this.orbit.distanceM = Math.max(0.3, radiusM * 1.7);
+    this.orbit.distanceM = Math.max(0.3, radiusM * 1.9);
     this.requestDraw();
   }
 
@@ -118,6 +127,7 @@ export class View3D {
 
   clipFromWorld() {
     const o = this.orbit;
+    this.canvas.dataset.orbit = `${o.yawRad.toFixed(3)} ${o.pitchRad.toFixed(3)} ${o.distanceM.toFixed(3)}`;
     const cp = Math.cos(o.pitchRad);
     const eye = [
       o.target[0] + o.distanceM * cp * Math.cos(o.yawRad),
@@ -139,6 +149,10 @@ export class View3D {
       this.canvas.width = w;
       this.canvas.height = h;
     }
+    if (!gl) {
+      this.draw2d(dpr);
+      return;
+    }
     gl.viewport(0, 0, w, h);
     gl.clearColor(0.09, 0.1, 0.12, 1);
     gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
@@ -157,6 +171,53 @@ export class View3D {
     this.drawLabels(m, dpr);
     this.canvas.dataset.pointsDrawn = String(this.drawnPoints);
     this.canvas.dataset.linesDrawn = String(this.drawnLines);
+  }
+
+  /** Canvas 2D fallback: same primitives, projected on the CPU, no depth test. */
+  draw2d(dpr) {
+    const ctx = this.ctx2d;
+    const W = this.canvas.width;
+    const H = this.canvas.height;
+    ctx.fillStyle = "rgb(23,26,31)";
+    ctx.fillRect(0, 0, W, H);
+    const m = this.clipFromWorld();
+    const toPx = (x, y, z) => {
+      const c = apply4(m, [x, y, z]);
+      if (c[3] <= 1e-6) return null;
+      return [((c[0] / c[3] + 1) / 2) * W, ((1 - c[1] / c[3]) / 2) * H];
+    };
+    const css = (d, i) => `rgba(${Math.round(d[i + 3] * 255)},${Math.round(d[i + 4] * 255)},${Math.round(d[i + 5] * 255)},${d[i + 6]})`;
+    const L = this.geometry.lines;
+    const F = FLOATS_PER_VERTEX;
+    ctx.lineWidth = dpr;
+    let lines = 0;
+    for (let i = 0; i < L.length; i += 2 * F) {
+      const a = toPx(L[i], L[i + 1], L[i + 2]);
+      const b = toPx(L[i + F], L[i + F + 1], L[i + F + 2]);
+      if (!a || !b) continue;
+      ctx.strokeStyle = css(L, i);
+      ctx.beginPath();
+      ctx.moveTo(a[0], a[1]);
+      ctx.lineTo(b[0], b[1]);
+      ctx.stroke();
+      lines += 1;
+    }
+    const P = this.geometry.points;
+    let points = 0;
+    for (let i = 0; i < P.length; i += F) {
+      const p = toPx(P[i], P[i + 1], P[i + 2]);
+      if (!p) continue;
+      ctx.fillStyle = css(P, i);
+      ctx.beginPath();
+      ctx.arc(p[0], p[1], (P[i + 7] * dpr) / 2, 0, 2 * Math.PI);
+      ctx.fill();
+      points += 1;
+    }
+    this.drawnLines = lines;
+    this.drawnPoints = points;
+    this.drawLabels(m, dpr);
+    this.canvas.dataset.pointsDrawn = String(points);
+    this.canvas.dataset.linesDrawn = String(lines);
   }
 
   drawArrays(buffer, data, mode) {

@@ -6,11 +6,12 @@
 use std::convert::Infallible;
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use axum::Json;
 use axum::Router;
-use axum::extract::{Path, State};
+use axum::extract::{Path, Query, State};
 use axum::http::{StatusCode, header};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
@@ -24,15 +25,17 @@ use tower_http::services::ServeDir;
 
 pub const TICK: Duration = Duration::from_millis(100);
 const PARTICLES_PER_OBJECT: usize = 150;
-const OBJECTS: [(u64, u32, &str, [f64; 3]); 2] = [
-    (1, 5, "mustard_bottle", [0.10, 0.02, 0.095]),
-    (2, 3, "tomato_can", [-0.12, 0.15, 0.05]),
+const OBJECTS: [(u64, &str, &str, [f64; 3]); 2] = [
+    (1, "obj_000005", "mustard_bottle", [0.10, 0.02, 0.095]),
+    (2, "obj_000003", "tomato_can", [-0.12, 0.15, 0.05]),
 ];
 
 #[derive(Clone)]
 struct Mock {
     started: Instant,
     drop_streams: watch::Sender<u64>,
+    /// While set and in the future, `/api/v1/events` answers 503 (the service "is down").
+    down_until: Arc<Mutex<Option<Instant>>>,
 }
 
 impl Mock {
@@ -51,11 +54,13 @@ pub async fn spawn() -> MockServer {
     let mock = Mock {
         started: Instant::now(),
         drop_streams,
+        down_until: Arc::new(Mutex::new(None)),
     };
     let app = Router::new()
         .route("/healthz", get(|| async { "ok" }))
         .route("/api/v1/scene", get(scene))
         .route("/api/v1/tracks", get(tracks))
+        .route("/api/v1/tracks/{id}/history", get(history))
         .route("/api/v1/objects/{id}/mesh", get(mesh))
         .route("/api/v1/cameras/{id}/latest", get(camera_latest))
         .route("/api/v1/cameras/{id}/latest/{file}", get(camera_image))
@@ -123,9 +128,9 @@ fn noise(seed: u64) -> f64 {
 
 fn track_view(index: usize, tick: u64) -> Value {
     let (id, object_id, name, center) = OBJECTS[index];
-    // The second object is seen later: it lags behind the first by 2 s.
-    let tick = tick.saturating_sub(index as u64 * 20);
-    let std_m = 0.04 * (-(tick as f64) / 40.0).exp() + 0.003;
+    // The second object converges more slowly (seen less well): its clock runs at 60 %.
+    let progress = tick as f64 * [1.0, 0.6][index];
+    let std_m = 0.04 * (-progress / 40.0).exp() + 0.003;
     let yaw = 0.4 + index as f64;
     let world_from_object = Isometry3::new(Vector3::from(center), Vector3::new(0.0, 0.0, yaw));
     let world_from_reference = look_at(robot_eye(tick), [0.0, 0.05, 0.05]);
@@ -152,22 +157,33 @@ fn track_view(index: usize, tick: u64) -> Value {
             pose_json(&(world_from_object * d))
         })
         .collect();
-    let p_success = 1.0 - (-(tick as f64) / 25.0).exp() * 0.9;
+    let p_success = 1.0 - (-progress / 25.0).exp() * 0.9;
     let object_from_gripper = Isometry3::new(
         Vector3::new(0.0, 0.0, 0.02),
         Vector3::new(std::f64::consts::FRAC_PI_2, 0.0, 0.0),
     );
+    // Poses inside the decision come as nalgebra serialises them (the grasp module's types).
+    let na_pose = |p: &Isometry3<f64>| serde_json::to_value(p).expect("pose json");
+    let failing = 1.0 - p_success;
     let decision = json!({
         "decision": if p_success >= 0.8 { "grasp" } else { "observe" },
         "p_success": p_success,
         "ci95": [(p_success - 0.05).max(0.0), (p_success + 0.05).min(1.0)],
         "n_samples": 200, "effective_sample_size": 180.0, "threshold": 0.8,
-        "grasp": { "object_from_gripper": pose_json(&object_from_gripper) },
-        "reference_from_gripper": pose_json(&(reference_from_object * object_from_gripper)),
+        "grasp": { "object_from_gripper": na_pose(&object_from_gripper), "approach_in_object": [0.0, -1.0, 0.0],
+                   "closing_in_object": [1.0, 0.0, 0.0], "depth_m": 0.02, "width_m": 0.07, "label": "approach -a1, close a0" },
+        "reference_from_gripper": na_pose(&(reference_from_object * object_from_gripper)),
         "reasons": [
-            { "test": "finger collision", "share": 0.6 * (1.0 - p_success) },
-            { "test": "object outside the closing region", "share": 0.4 * (1.0 - p_success) },
+            { "test": "contact", "failure_share": 0.6 * failing, "drivers": [],
+              "message": format!("{:.1}% of samples: a pad misses the object", 60.0 * failing) },
+            { "test": "approach", "failure_share": 0.4 * failing, "drivers": [],
+              "message": format!("{:.1}% of samples: the open gripper hits the object", 40.0 * failing) },
         ],
+        "uncertainty": [
+            { "motion": "translation", "axis": "gripper_x", "axis_in_reference": [1.0, 0.0, 0.0],
+              "spread": std_m, "failure_correlation": 0.55 },
+        ],
+        "candidates": [],
     });
     json!({
         "id": id, "object_id": object_id, "object_name": name,
@@ -176,14 +192,14 @@ fn track_view(index: usize, tick: u64) -> Value {
         "reference_from_object": pose_json(&reference_from_object),
         "world_from_object": pose_json(&world_from_object),
         "translation_std_m": std_m,
-        "rotation_entropy": 3.0 * (-(tick as f64) / 30.0).exp() + 0.2,
-        "top_mode_mass": 1.0 - 0.8 * (-(tick as f64) / 30.0).exp(),
+        "rotation_entropy": 3.0 * (-progress / 30.0).exp() + 0.2,
+        "top_mode_mass": 1.0 - 0.8 * (-progress / 30.0).exp(),
         "components": [{ "camera": "ext1", "weight": 1.0, "mean_m": center,
                          "covariance_m2": [[std_m * std_m, 0.0, 0.0], [0.0, std_m * std_m, 0.0], [0.0, 0.0, std_m * std_m]] }],
         "particles": particles,
         "samples_world": samples,
         "decision": decision,
-        "truth": { "translation_error_m": std_m * 0.8, "orientation_error_deg": 20.0 * (-(tick as f64) / 30.0).exp() + 1.0 },
+        "truth": { "translation_error_m": std_m * 0.8, "orientation_error_deg": 20.0 * (-progress / 30.0).exp() + 1.0 },
     })
 }
 
@@ -192,7 +208,23 @@ async fn tracks(State(m): State<Mock>) -> Json<Value> {
     Json(Value::Array((0..OBJECTS.len()).map(|i| track_view(i, tick)).collect()))
 }
 
-async fn mesh(Path(id): Path<u32>) -> Response {
+/// One point per tick so far, like the service's ring buffer of past estimates.
+async fn history(State(m): State<Mock>, Path(id): Path<u64>) -> Response {
+    let Some(index) = OBJECTS.iter().position(|o| o.0 == id) else {
+        return StatusCode::NOT_FOUND.into_response();
+    };
+    let points: Vec<Value> = (0..m.tick())
+        .map(|tick| {
+            let t = track_view(index, tick);
+            json!({ "stamp_ns": t["stamp_ns"], "world_from_object": t["world_from_object"],
+                    "translation_std_m": t["translation_std_m"], "rotation_entropy": t["rotation_entropy"],
+                    "status": t["status"], "truth": t["truth"] })
+        })
+        .collect();
+    Json(Value::Array(points)).into_response()
+}
+
+async fn mesh(Path(id): Path<String>) -> Response {
     let Some(&(_, _, name, _)) = OBJECTS.iter().find(|o| o.1 == id) else {
         return StatusCode::NOT_FOUND.into_response();
     };
@@ -235,8 +267,8 @@ async fn camera_latest(State(m): State<Mock>, Path(id): Path<String>) -> Respons
     Json(json!({
         "stamp_ns": tick as i64 * 100_000_000,
         "detections": [
-            { "object": "mustard_bottle", "bbox_xywh_px": [300.0, 180.0, 90.0, 140.0], "score": 0.93 },
-            { "object": "tomato_can", "bbox_xywh_px": [180.0, 220.0, 70.0, 80.0], "score": 0.81 },
+            { "object": "obj_000005", "bbox_xywh_px": [300.0, 180.0, 90.0, 140.0], "score": 0.93 },
+            { "object": "obj_000003", "bbox_xywh_px": [180.0, 220.0, 70.0, 80.0], "score": 0.81 },
         ],
     }))
     .into_response()
@@ -261,12 +293,29 @@ async fn camera_image(Path((id, file)): Path<(String, String)>) -> Response {
     ([(header::CONTENT_TYPE, "image/png")], png).into_response()
 }
 
-async fn drop_streams_handler(State(m): State<Mock>) -> StatusCode {
+#[derive(serde::Deserialize)]
+struct DropQuery {
+    /// Refuse new event streams for this long after dropping the open ones.
+    down_ms: Option<u64>,
+}
+
+async fn drop_streams_handler(State(m): State<Mock>, Query(q): Query<DropQuery>) -> StatusCode {
+    if let Some(ms) = q.down_ms {
+        *m.down_until.lock().expect("lock") = Some(Instant::now() + Duration::from_millis(ms));
+    }
     m.drop_streams.send_modify(|g| *g += 1);
     StatusCode::NO_CONTENT
 }
 
-async fn events(State(m): State<Mock>) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
+async fn events(State(m): State<Mock>) -> Response {
+    let down = m.down_until.lock().expect("lock").is_some_and(|t| Instant::now() < t);
+    if down {
+        return StatusCode::SERVICE_UNAVAILABLE.into_response();
+    }
+    event_stream(m).into_response()
+}
+
+fn event_stream(m: Mock) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
     let mut dropped = m.drop_streams.subscribe();
     dropped.mark_unchanged();
     let mut interval = tokio::time::interval(TICK);
