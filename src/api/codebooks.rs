@@ -1,0 +1,154 @@
+//! Background codebook builds: one low-priority builder thread (a bounded pool of one, so that
+//! builds never take more than one of the machine's cores from tracking), coarse codebooks
+//! first so that tracking starts quickly, then (optionally) the fine grid. Built codebooks are
+//! cached on disk under `<data dir>/codebooks` (keyed by mesh content, grid and config), so a
+//! restart loads them instead of rebuilding.
+
+use super::AppState;
+use super::objects::{CodebookState, CodebookStatus, set_codebook_status};
+use crate::geometry::RotationGrid;
+use crate::tracker::Codebook;
+use crate::tracker::codebook::{CodebookConfig, CpuViews};
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+/// Ready codebooks per object id, with the content hash they were built for.
+#[derive(Default)]
+pub struct Codebooks {
+    ready: Mutex<HashMap<String, (String, Arc<Codebook>)>>,
+}
+
+impl Codebooks {
+    /// The ready codebook of an object whose mesh has `content_hash`.
+    pub fn get(&self, object_id: &str, content_hash: &str) -> Option<Arc<Codebook>> {
+        let ready = self.ready.lock().unwrap_or_else(|p| p.into_inner());
+        ready
+            .get(object_id)
+            .filter(|(h, _)| h == content_hash)
+            .map(|(_, c)| c.clone())
+    }
+    fn put(&self, object_id: &str, content_hash: &str, cb: Arc<Codebook>) {
+        self.ready
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .insert(object_id.to_string(), (content_hash.to_string(), cb));
+    }
+}
+
+/// The codebook settings of a server.
+#[derive(Debug, Clone)]
+pub struct CodebookPlan {
+    /// The first codebook of every object (fast).
+    pub coarse_step_deg: u32,
+    pub coarse: CodebookConfig,
+    /// The codebook built after the coarse one (`None`: keep the coarse one).
+    pub fine: Option<(u32, CodebookConfig)>,
+}
+
+impl Default for CodebookPlan {
+    fn default() -> Self {
+        Self {
+            coarse_step_deg: 10,
+            coarse: CodebookConfig::coarse(),
+            fine: None,
+        }
+    }
+}
+
+fn build(state: &AppState, object_id: &str, step_deg: u32, config: &CodebookConfig) -> Result<(), String> {
+    let (mesh, hash) = {
+        let reg = state.registry();
+        let o = reg.objects.get(object_id).ok_or("object was deleted")?;
+        (o.mesh.clone(), o.info.content_hash.clone())
+    };
+    let grid = RotationGrid::new(step_deg).map_err(|e| e.to_string())?;
+    let cache = state.config.data_dir.join("codebooks");
+    let cb =
+        Codebook::load_or_build_with(&CpuViews(&mesh), &mesh, grid, config, Some(&cache)).map_err(|e| e.to_string())?;
+    tracing::info!(
+        "codebook of {object_id}: {step_deg} deg grid, {} bins, {:.1} s{}",
+        cb.n_bins(),
+        cb.build_seconds,
+        if cb.from_cache { " (from cache)" } else { "" }
+    );
+    state.codebooks.put(object_id, &hash, Arc::new(cb));
+    Ok(())
+}
+
+/// Starts the builder thread; it stops when `stop` is set.
+pub fn spawn_builder(state: AppState, stop: Arc<AtomicBool>) -> Option<std::thread::JoinHandle<()>> {
+    std::thread::Builder::new()
+        .name("pregrasp-codebooks".into())
+        .spawn(move || {
+            while !stop.load(Ordering::Relaxed) {
+                let next = {
+                    let reg = state.registry();
+                    reg.objects
+                        .values()
+                        .find(|o| o.info.codebook.status == CodebookState::Pending)
+                        .map(|o| o.info.id.clone())
+                };
+                let Some(id) = next else {
+                    std::thread::sleep(Duration::from_millis(100));
+                    continue;
+                };
+                let plan = state.config.codebooks.clone();
+                let stages: Vec<(u32, CodebookConfig)> = std::iter::once((plan.coarse_step_deg, plan.coarse.clone()))
+                    .chain(plan.fine.clone())
+                    .collect();
+                let n = stages.len();
+                for (i, (step, config)) in stages.into_iter().enumerate() {
+                    set_codebook_status(
+                        &state,
+                        &id,
+                        CodebookStatus {
+                            status: if i == 0 {
+                                CodebookState::Building
+                            } else {
+                                CodebookState::Ready
+                            },
+                            progress: i as f64 / n as f64,
+                            grid_step_deg: Some(step),
+                            error: None,
+                        },
+                    );
+                    match build(&state, &id, step, &config) {
+                        Ok(()) => set_codebook_status(
+                            &state,
+                            &id,
+                            CodebookStatus {
+                                status: CodebookState::Ready,
+                                progress: (i + 1) as f64 / n as f64,
+                                grid_step_deg: Some(step),
+                                error: None,
+                            },
+                        ),
+                        Err(e) => {
+                            tracing::warn!("codebook of {id} failed: {e}");
+                            set_codebook_status(
+                                &state,
+                                &id,
+                                CodebookStatus {
+                                    status: if i == 0 {
+                                        CodebookState::Failed
+                                    } else {
+                                        CodebookState::Ready
+                                    },
+                                    progress: i as f64 / n as f64,
+                                    grid_step_deg: Some(step),
+                                    error: Some(e),
+                                },
+                            );
+                            break;
+                        }
+                    }
+                    if stop.load(Ordering::Relaxed) {
+                        return;
+                    }
+                }
+            }
+        })
+        .ok()
+}

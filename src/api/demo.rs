@@ -1,0 +1,310 @@
+//! `pregrasp serve --demo`: with no external files, the built-in objects (box, can, mug) on a
+//! table, two stationary cameras and a robot camera driving towards the table, rendered on the
+//! CPU and streamed into the server itself in real time (frames with detections, odometry), in
+//! a loop. The ground-truth channel is filled so that the dashboard can plot errors (the
+//! tracker never reads it), and a decision is asked for the target every second.
+//!
+//! The frames go through the same validation and ingest path as HTTP frames
+//! ([`super::frames::ingest_frame`]); only the network hop is skipped.
+
+use super::AppState;
+use super::cameras::{self, CameraSpec, MountDto};
+use super::decisions::{DecisionRequest, decide_blocking};
+use super::ingest::{IngestedFrame, OdometryMsg};
+use super::scene::PlaneDto;
+use super::types::{DetectionDto, IntrinsicsDto, PoseDto};
+use crate::camera::Intrinsics;
+use crate::geometry::Pose;
+use crate::mesh::Mesh;
+use nalgebra::{Translation3, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+/// Image size of the demo cameras.
+pub const DEMO_WIDTH_PX: u32 = 320;
+pub const DEMO_HEIGHT_PX: u32 = 240;
+pub const DEMO_FOCAL_PX: f64 = 300.0;
+/// Frames per second of each camera.
+pub const DEMO_CAMERA_HZ: f64 = 5.0;
+/// One loop: the robot drives for this long, then waits.
+pub const DEMO_DRIVE_S: f64 = 24.0;
+pub const DEMO_PAUSE_S: f64 = 4.0;
+/// Where the robot base starts and stops (world x; the table is centred at the origin).
+pub const DEMO_START_X_M: f64 = -2.6;
+pub const DEMO_STOP_X_M: f64 = -0.75;
+/// The object the robot approaches (decisions are asked for it).
+pub const DEMO_TARGET: &str = "can";
+/// Relative depth noise (uniform, +-).
+pub const DEMO_DEPTH_NOISE_REL: f64 = 0.01;
+/// Minimum visible pixels for a detection.
+pub const DEMO_MIN_DETECTION_PX: usize = 30;
+
+/// `world_from_camera` of a camera at `eye` looking at `target` (world z up, optical frame).
+pub fn look_at(eye: [f64; 3], target: [f64; 3]) -> Pose {
+    let eye = Vector3::from(eye);
+    let z = (Vector3::from(target) - eye).normalize();
+    let x = z.cross(&Vector3::z()).normalize();
+    let y = z.cross(&x);
+    let m = nalgebra::Matrix3::from_columns(&[x, y, z]);
+    let r = UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(m));
+    Pose::from_parts(Translation3::from(eye), r)
+}
+
+/// The demo world.
+pub struct DemoScene {
+    pub objects: Vec<(String, Mesh, Pose)>,
+    pub table: Mesh,
+    pub stationary: Vec<(String, Pose)>,
+    pub base_from_camera: Pose,
+    pub intrinsics: Intrinsics,
+}
+
+impl DemoScene {
+    pub fn new() -> anyhow::Result<Self> {
+        let place = |name: &str, x: f64, y: f64, yaw: f64| -> anyhow::Result<(String, Mesh, Pose)> {
+            let mesh = crate::mesh::builtin(name).ok_or_else(|| anyhow::anyhow!("no built-in {name}"))?;
+            let z = -mesh.bounds().min_m.z;
+            let pose = Pose::from_parts(
+                Translation3::new(x, y, z),
+                UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
+            );
+            Ok((name.to_string(), mesh, pose))
+        };
+        let mut table = crate::mesh::builtin_box([1.2, 0.8, 0.04], [[150, 120, 90], [150, 120, 90]]);
+        for v in &mut table.vertices_m {
+            v[2] -= 0.02;
+        }
+        Ok(Self {
+            objects: vec![
+                place("box", 0.05, -0.2, 0.6)?,
+                place("can", -0.1, 0.05, 0.0)?,
+                place("mug", 0.1, 0.22, 2.2)?,
+            ],
+            table,
+            stationary: vec![
+                ("ext1".into(), look_at([-0.8, -0.9, 0.8], [0.0, 0.0, 0.05])),
+                ("ext2".into(), look_at([0.7, -0.8, 0.9], [0.0, 0.0, 0.05])),
+            ],
+            base_from_camera: look_at([0.0, 0.0, 1.25], [1.0, 0.0, 0.55]),
+            intrinsics: Intrinsics::from_focal(DEMO_WIDTH_PX, DEMO_HEIGHT_PX, DEMO_FOCAL_PX)?,
+        })
+    }
+
+    /// The robot base at `t_s` into a loop (drives along +x, then waits).
+    pub fn world_from_base(&self, t_s: f64) -> Pose {
+        let s = (t_s / DEMO_DRIVE_S).clamp(0.0, 1.0);
+        let s = s * s * (3.0 - 2.0 * s); // smooth start and stop
+        let x = DEMO_START_X_M + (DEMO_STOP_X_M - DEMO_START_X_M) * s;
+        Pose::from_parts(Translation3::new(x, 0.05, -0.75), UnitQuaternion::identity())
+    }
+
+    /// Renders one camera: depth with noise, colour, detections from the instance mask.
+    pub fn render(&self, camera: &str, world_from_camera: &Pose, stamp_ns: i64, rng: &mut impl Rng) -> IngestedFrame {
+        let k = &self.intrinsics;
+        let cfw = world_from_camera.inverse();
+        let mut list: Vec<(&Mesh, Pose)> = self.objects.iter().map(|(_, m, p)| (m, cfw * p)).collect();
+        list.push((&self.table, cfw));
+        let mut img = crate::tracker::raster::render(k, &list, 0.05, [40, 44, 52]);
+        for d in &mut img.depth.data_m {
+            if *d > 0.0 {
+                *d *= 1.0 + (DEMO_DEPTH_NOISE_REL * (rng.random::<f64>() * 2.0 - 1.0)) as f32;
+            }
+        }
+        let mut detections = Vec::new();
+        for (i, (name, _, _)) in self.objects.iter().enumerate() {
+            let id = i as u16 + 1;
+            let (mut x0, mut y0, mut x1, mut y1, mut n) = (u32::MAX, u32::MAX, 0, 0, 0usize);
+            for y in 0..k.height {
+                for x in 0..k.width {
+                    if img.instance[(y * k.width + x) as usize] == id {
+                        (x0, y0, x1, y1, n) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y), n + 1);
+                    }
+                }
+            }
+            if n >= DEMO_MIN_DETECTION_PX {
+                detections.push(DetectionDto {
+                    object: name.clone(),
+                    bbox_xywh_px: [x0 as f64, y0 as f64, (x1 - x0 + 1) as f64, (y1 - y0 + 1) as f64],
+                    score: 0.9,
+                });
+            }
+        }
+        IngestedFrame {
+            camera: camera.to_string(),
+            stamp_ns,
+            depth: img.depth,
+            color: Some(img.color),
+            detections,
+            received: Instant::now(),
+        }
+    }
+}
+
+/// Registers the demo's cameras, objects and support plane.
+pub fn register(state: &AppState, scene: &DemoScene) -> anyhow::Result<()> {
+    let intrinsics = IntrinsicsDto::from_intrinsics(&scene.intrinsics);
+    for (id, pose) in &scene.stationary {
+        let spec = CameraSpec {
+            intrinsics,
+            mount: MountDto::Stationary {
+                world_from_camera: PoseDto::from_pose(pose),
+            },
+        };
+        cameras::register(state, cameras::validate(id, spec)?)?;
+    }
+    let spec = CameraSpec {
+        intrinsics,
+        mount: MountDto::Robot {
+            base_from_camera: PoseDto::from_pose(&scene.base_from_camera),
+        },
+    };
+    cameras::register(state, cameras::validate("robot", spec)?)?;
+    for (name, mesh, _) in &scene.objects {
+        let same = state
+            .registry()
+            .objects
+            .get(name)
+            .is_some_and(|o| o.info.content_hash == mesh.content_hash());
+        if !same {
+            super::objects::register_mesh(state, name, name, mesh.clone())?;
+        }
+    }
+    *state.support_plane.lock().unwrap_or_else(|p| p.into_inner()) = Some(PlaneDto {
+        normal: [0.0, 0.0, 1.0],
+        point_m: [0.0, 0.0, 0.0],
+    });
+    let mut truth = state.truth.lock().unwrap_or_else(|p| p.into_inner());
+    for (name, _, pose) in &scene.objects {
+        truth.insert(name.clone(), (0, *pose));
+    }
+    Ok(())
+}
+
+/// Forgets the tracks (the robot jumps back to the start of its path at each loop).
+fn reset_tracking(state: &AppState) {
+    *state.engine.lock().unwrap_or_else(|p| p.into_inner()) = None;
+    let mut b = state.tracking.board_mut();
+    b.views.clear();
+    b.history.clear();
+}
+
+/// Registers the demo scene and starts streaming it (returns the streaming thread's stop flag).
+pub fn start(state: AppState) -> anyhow::Result<Arc<AtomicBool>> {
+    let scene = DemoScene::new()?;
+    register(&state, &scene)?;
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    std::thread::Builder::new()
+        .name("pregrasp-demo".into())
+        .spawn(move || run(state, scene, flag))?;
+    Ok(stop)
+}
+
+fn run(state: AppState, scene: DemoScene, stop: Arc<AtomicBool>) {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+    let t_start = Instant::now();
+    let period_s = 1.0 / DEMO_CAMERA_HZ;
+    let loop_s = DEMO_DRIVE_S + DEMO_PAUSE_S;
+    // Each camera fires at its own phase within the period (the cameras are not synchronised).
+    let cameras: Vec<(String, Option<Pose>, f64)> = std::iter::once(("robot".to_string(), None, 0.0))
+        .chain(
+            scene
+                .stationary
+                .iter()
+                .enumerate()
+                .map(|(i, (id, p))| (id.clone(), Some(*p), (i as f64 + 1.0) / 3.0 * period_s)),
+        )
+        .collect();
+    let mut tick: u64 = 0;
+    let mut loop_index = 0u64;
+    let mut last_decision = Instant::now();
+    while !stop.load(Ordering::Relaxed) {
+        for (camera, stationary, phase) in &cameras {
+            let due_s = tick as f64 * period_s + phase;
+            let now_s = t_start.elapsed().as_secs_f64();
+            if due_s > now_s {
+                std::thread::sleep(Duration::from_secs_f64(due_s - now_s));
+            }
+            if stop.load(Ordering::Relaxed) {
+                return;
+            }
+            let this_loop = (due_s / loop_s) as u64;
+            if this_loop != loop_index {
+                loop_index = this_loop;
+                reset_tracking(&state);
+            }
+            let t_loop = due_s - loop_index as f64 * loop_s;
+            let stamp_ns = (due_s * 1e9) as i64;
+            let world_from_camera = match stationary {
+                Some(p) => *p,
+                None => {
+                    let world_from_base = scene.world_from_base(t_loop);
+                    state.metrics.odometry_accepted.fetch_add(1, Ordering::Relaxed);
+                    let _ = state.ingest().push_odometry(OdometryMsg {
+                        stamp_ns,
+                        odom_from_base: world_from_base,
+                        covariance: None,
+                        world_from_odom: Pose::identity(),
+                        base_from_camera: Some(scene.base_from_camera),
+                    });
+                    world_from_base * scene.base_from_camera
+                }
+            };
+            let frame = scene.render(camera, &world_from_camera, stamp_ns, &mut rng);
+            if let Err(e) = super::frames::ingest_frame(&state, frame) {
+                tracing::debug!("demo frame refused: {e}");
+            }
+        }
+        tick += 1;
+        if last_decision.elapsed() >= Duration::from_secs(1) {
+            last_decision = Instant::now();
+            let targets: Vec<u64> = state
+                .tracking
+                .board()
+                .views
+                .values()
+                .filter(|v| v.object_id == DEMO_TARGET)
+                .map(|v| v.id)
+                .collect();
+            for id in targets {
+                let req = DecisionRequest {
+                    n_samples: Some(300),
+                    ..DecisionRequest::default()
+                };
+                if let Err(e) = decide_blocking(&state, id, &req) {
+                    tracing::debug!("demo decision for track {id}: {e}");
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_camera_sees_the_target_with_a_detection_at_the_end_of_the_drive() {
+        let scene = DemoScene::new().unwrap();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let robot = scene.world_from_base(DEMO_DRIVE_S) * scene.base_from_camera;
+        let mut views = vec![("robot".to_string(), robot)];
+        views.extend(scene.stationary.iter().cloned());
+        for (id, pose) in views {
+            let f = scene.render(&id, &pose, 0, &mut rng);
+            assert!(
+                f.detections.iter().any(|d| d.object == DEMO_TARGET),
+                "{id} does not see the {DEMO_TARGET}: {:?}",
+                f.detections
+            );
+            let valid = f.depth.data_m.iter().filter(|d| **d > 0.0).count();
+            assert!(valid > 1000, "{id}: {valid} depth readings");
+        }
+        // At the start the robot is far away but the table is in view.
+        let far = scene.world_from_base(0.0) * scene.base_from_camera;
+        let f = scene.render("robot", &far, 0, &mut rng);
+        assert!(f.depth.data_m.iter().any(|d| *d > 0.0));
+    }
+}

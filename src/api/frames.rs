@@ -1,0 +1,472 @@
+//! Frame and odometry ingest, and each camera's latest images.
+//!
+//! `POST /cameras/{id}/frames` takes one camera image, either as JSON with base64 payloads or as
+//! `multipart/form-data` with a `meta` part (the same JSON without the payloads) and `depth`
+//! (and optionally `color`) file parts. Depth: a 16-bit grayscale PNG with `depth_scale`
+//! (millimetres per unit, as in BOP: `depth_mm = value * depth_scale`), or raw 32-bit float
+//! little-endian metres (`encoding = "f32le"`). Colour: PNG or JPEG. Sizes must match the
+//! camera's intrinsics.
+
+use super::AppState;
+use super::error::{Accepted, ApiError};
+use super::events::ServerEvent;
+use super::ingest::{IngestError, IngestedFrame, OdometryMsg};
+use super::types::{ApiJson, DetectionDto, IntrinsicsDto, PoseDto};
+use crate::camera::{ColorImage, DepthImage};
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::{FromRequest, Multipart, Path, Request, State};
+use axum::http::header;
+use axum::response::IntoResponse;
+use base64::Engine;
+use serde::{Deserialize, Serialize};
+use std::sync::atomic::Ordering;
+use std::time::Instant;
+use utoipa::ToSchema;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+
+/// How the depth bytes are encoded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum DepthEncoding {
+    /// 16-bit grayscale PNG; `depth_mm = value * depth_scale`.
+    #[default]
+    Png16,
+    /// Raw 32-bit float, little-endian, metres, row-major (width x height values).
+    F32le,
+}
+
+/// Depth payload in a JSON frame.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct DepthPayload {
+    #[serde(default)]
+    pub encoding: DepthEncoding,
+    /// Millimetres per PNG unit (BOP's `depth_scale`, default 1).
+    pub depth_scale: Option<f64>,
+    pub data_base64: String,
+}
+
+/// Colour payload in a JSON frame (PNG or JPEG).
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct ColorPayload {
+    pub data_base64: String,
+}
+
+/// One camera frame, JSON form.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct FrameJson {
+    /// Capture time, nanoseconds.
+    pub stamp_ns: i64,
+    pub depth: DepthPayload,
+    pub color: Option<ColorPayload>,
+    #[serde(default)]
+    pub detections: Vec<DetectionDto>,
+}
+
+/// The `meta` part of a multipart frame.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct FrameMeta {
+    pub stamp_ns: i64,
+    #[serde(default)]
+    pub depth_encoding: DepthEncoding,
+    pub depth_scale: Option<f64>,
+    #[serde(default)]
+    pub detections: Vec<DetectionDto>,
+}
+
+/// The answer to an accepted frame.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct FrameAccepted {
+    pub camera: String,
+    pub stamp_ns: i64,
+    /// Frames waiting for the tracker after this one.
+    pub queue_depth: usize,
+    /// Waiting frames of this camera dropped to make room (drop-oldest policy).
+    pub dropped: usize,
+}
+
+/// An odometry message like ROS `nav_msgs/Odometry` plus localisation.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct OdometryIn {
+    pub stamp_ns: i64,
+    /// `odom_from_base` with an optional row-major 6x6 covariance (x, y, z, rx, ry, rz).
+    pub odom_from_base: PoseWithCovarianceDto,
+    /// REP-105 `map -> odom` from the robot's localisation (default: identity).
+    pub world_from_odom: Option<PoseDto>,
+    /// Current `base_from_camera` of the robot camera (the arm moves it); default: as registered.
+    pub base_from_camera: Option<PoseDto>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct PoseWithCovarianceDto {
+    pub pose: PoseDto,
+    pub covariance: Option<Vec<f64>>,
+}
+
+/// The newest frame of a camera.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct LatestFrame {
+    pub camera: String,
+    pub stamp_ns: i64,
+    pub detections: Vec<DetectionDto>,
+    pub has_color: bool,
+}
+
+pub fn router() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new()
+        .routes(routes!(post_frame))
+        .routes(routes!(post_odometry))
+        .routes(routes!(get_latest))
+        .routes(routes!(get_latest_depth_png))
+        .routes(routes!(get_latest_color_png))
+}
+
+fn decode_b64(what: &str, s: &str) -> Result<Vec<u8>, ApiError> {
+    base64::engine::general_purpose::STANDARD
+        .decode(s.trim())
+        .map_err(|e| ApiError::Malformed(format!("{what}: not valid base64 ({e})")))
+}
+
+/// Decodes a depth payload and checks it against the camera's size.
+pub fn decode_depth(
+    bytes: &[u8],
+    encoding: DepthEncoding,
+    depth_scale: Option<f64>,
+    intr: &IntrinsicsDto,
+) -> Result<DepthImage, ApiError> {
+    let (w, h) = (intr.width, intr.height);
+    match encoding {
+        DepthEncoding::F32le => {
+            let expected = w as usize * h as usize * 4;
+            if bytes.len() != expected {
+                return Err(ApiError::Invalid(format!(
+                    "raw f32 depth has {} bytes; the camera is {w}x{h}, so {expected} bytes are expected",
+                    bytes.len()
+                )));
+            }
+            let data: Vec<f32> = bytes
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect();
+            DepthImage::new(w, h, data).map_err(|e| ApiError::Invalid(format!("depth: {e}")))
+        }
+        DepthEncoding::Png16 => {
+            let scale = depth_scale.unwrap_or(1.0);
+            if !(scale.is_finite() && scale > 0.0) {
+                return Err(ApiError::Invalid(format!(
+                    "depth_scale must be finite and > 0, got {scale}"
+                )));
+            }
+            let img = image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
+                .map_err(|e| ApiError::Malformed(format!("depth is not a readable PNG: {e}")))?;
+            let image::DynamicImage::ImageLuma16(img) = img else {
+                return Err(ApiError::Invalid(format!(
+                    "depth PNG must be 16-bit grayscale, got {:?}",
+                    img.color()
+                )));
+            };
+            if img.width() != w || img.height() != h {
+                return Err(ApiError::Invalid(format!(
+                    "depth image is {}x{}, but the camera's intrinsics are {w}x{h}",
+                    img.width(),
+                    img.height()
+                )));
+            }
+            DepthImage::from_u16_mm(w, h, img.as_raw(), scale).map_err(|e| ApiError::Invalid(format!("depth: {e}")))
+        }
+    }
+}
+
+/// Decodes a PNG/JPEG colour image and checks its size.
+pub fn decode_color(bytes: &[u8], intr: &IntrinsicsDto) -> Result<ColorImage, ApiError> {
+    let img = image::load_from_memory(bytes)
+        .map_err(|e| ApiError::Malformed(format!("color is not a readable PNG or JPEG: {e}")))?
+        .to_rgb8();
+    if img.width() != intr.width || img.height() != intr.height {
+        return Err(ApiError::Invalid(format!(
+            "color image is {}x{}, but the camera's intrinsics are {}x{}",
+            img.width(),
+            img.height(),
+            intr.width,
+            intr.height
+        )));
+    }
+    let (w, h) = (img.width(), img.height());
+    let data = img.into_raw().chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+    ColorImage::new(w, h, data).map_err(|e| ApiError::Invalid(format!("color: {e}")))
+}
+
+fn check_detections(state: &AppState, dets: &[DetectionDto]) -> Result<(), ApiError> {
+    let reg = state.registry();
+    for d in dets {
+        if !reg.objects.contains_key(&d.object) {
+            return Err(ApiError::Invalid(format!(
+                "detection names unknown object '{}'",
+                d.object
+            )));
+        }
+        let b = d.bbox_xywh_px;
+        if !b.iter().all(|v| v.is_finite()) || b[2] <= 0.0 || b[3] <= 0.0 || !d.score.is_finite() {
+            return Err(ApiError::Invalid(format!(
+                "detection of '{}' needs finite numbers and a positive box size, got {b:?} score {}",
+                d.object, d.score
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Validates and queues one frame (used by the handler and by the demo).
+pub fn ingest_frame(state: &AppState, frame: IngestedFrame) -> Result<FrameAccepted, ApiError> {
+    let (camera, stamp_ns) = (frame.camera.clone(), frame.stamp_ns);
+    let pushed = state.ingest().push_frame(frame);
+    match pushed {
+        Ok(dropped) => {
+            state.metrics.frames_accepted.fetch_add(1, Ordering::Relaxed);
+            state
+                .metrics
+                .frames_dropped
+                .fetch_add(dropped as u64, Ordering::Relaxed);
+            state.wake.notify_one();
+            state.publish(ServerEvent::Frame {
+                camera: camera.clone(),
+                stamp_ns,
+            });
+            Ok(FrameAccepted {
+                camera,
+                stamp_ns,
+                queue_depth: state.ingest().pending(),
+                dropped,
+            })
+        }
+        Err(e @ (IngestError::TooOld { .. } | IngestError::Duplicate { .. })) => {
+            state.metrics.frames_stale.fetch_add(1, Ordering::Relaxed);
+            Err(ApiError::Stale(e.to_string()))
+        }
+        Err(e) => Err(ApiError::Stale(e.to_string())),
+    }
+}
+
+#[utoipa::path(post, path = "/cameras/{id}/frames", tag = "ingest",
+    params(("id" = String, Path, description = "Camera id")),
+    request_body(content((FrameJson = "application/json"), (FrameMeta = "multipart/form-data")),
+        description = "JSON with base64 payloads, or multipart with parts 'meta' (JSON), 'depth', 'color'"),
+    responses((status = 202, body = FrameAccepted),
+        (status = 400, body = super::error::Problem), (status = 404, body = super::error::Problem),
+        (status = 409, description = "Older than the window or a duplicate stamp; counted, not applied", body = super::error::Problem),
+        (status = 413, body = super::error::Problem), (status = 415, body = super::error::Problem),
+        (status = 422, body = super::error::Problem)))]
+async fn post_frame(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    req: Request,
+) -> Result<Accepted<FrameAccepted>, ApiError> {
+    let received = Instant::now();
+    let intr = state
+        .registry()
+        .cameras
+        .get(&id)
+        .map(|c| c.intrinsics)
+        .ok_or_else(|| ApiError::not_found("camera", id.clone()))?;
+    let ct = req
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    let (stamp_ns, depth_bytes, encoding, scale, color_bytes, detections) = if ct.starts_with("application/json") {
+        let ApiJson(f) = ApiJson::<FrameJson>::from_request(req, &state).await?;
+        let depth = decode_b64("depth.data_base64", &f.depth.data_base64)?;
+        let color = f
+            .color
+            .map(|c| decode_b64("color.data_base64", &c.data_base64))
+            .transpose()?;
+        (
+            f.stamp_ns,
+            depth,
+            f.depth.encoding,
+            f.depth.depth_scale,
+            color,
+            f.detections,
+        )
+    } else if ct.starts_with("multipart/form-data") {
+        let mut mp = Multipart::from_request(req, &state).await?;
+        let (mut meta, mut depth, mut color) = (None, None, None);
+        while let Some(field) = mp.next_field().await? {
+            let name = field.name().unwrap_or("").to_string();
+            let bytes: Bytes = field.bytes().await?;
+            match name.as_str() {
+                "meta" => {
+                    meta = Some(
+                        serde_json::from_slice::<FrameMeta>(&bytes)
+                            .map_err(|e| ApiError::Malformed(format!("meta part: {e}")))?,
+                    )
+                }
+                "depth" => depth = Some(bytes.to_vec()),
+                "color" => color = Some(bytes.to_vec()),
+                other => return Err(ApiError::Malformed(format!("unexpected multipart part '{other}'"))),
+            }
+        }
+        let meta = meta.ok_or_else(|| ApiError::Malformed("multipart frame needs a 'meta' part".into()))?;
+        let depth = depth.ok_or_else(|| ApiError::Malformed("multipart frame needs a 'depth' part".into()))?;
+        (
+            meta.stamp_ns,
+            depth,
+            meta.depth_encoding,
+            meta.depth_scale,
+            color,
+            meta.detections,
+        )
+    } else {
+        return Err(ApiError::UnsupportedMediaType(format!(
+            "a frame is application/json (base64 payloads) or multipart/form-data, not '{ct}'"
+        )));
+    };
+    check_detections(&state, &detections)?;
+    let frame = tokio::task::spawn_blocking(move || -> Result<IngestedFrame, ApiError> {
+        let depth = decode_depth(&depth_bytes, encoding, scale, &intr)?;
+        let color = color_bytes.map(|b| decode_color(&b, &intr)).transpose()?;
+        Ok(IngestedFrame {
+            camera: id,
+            stamp_ns,
+            depth,
+            color,
+            detections,
+            received,
+        })
+    })
+    .await
+    .map_err(ApiError::internal)??;
+    Ok(Accepted(ingest_frame(&state, frame)?))
+}
+
+/// Validates an odometry message into the buffer's form.
+pub fn validate_odometry(o: &OdometryIn) -> Result<OdometryMsg, ApiError> {
+    let covariance = match &o.odom_from_base.covariance {
+        None => None,
+        Some(c) if c.len() == 36 && c.iter().all(|v| v.is_finite()) => {
+            let mut a = [0.0; 36];
+            a.copy_from_slice(c);
+            Some(a)
+        }
+        Some(c) => {
+            return Err(ApiError::Invalid(format!(
+                "odom_from_base.covariance must be 36 finite numbers (row-major 6x6), got {} values",
+                c.len()
+            )));
+        }
+    };
+    Ok(OdometryMsg {
+        stamp_ns: o.stamp_ns,
+        odom_from_base: o.odom_from_base.pose.to_pose("odom_from_base.pose")?,
+        covariance,
+        world_from_odom: match &o.world_from_odom {
+            Some(p) => p.to_pose("world_from_odom")?,
+            None => crate::geometry::Pose::identity(),
+        },
+        base_from_camera: o.base_from_camera.map(|p| p.to_pose("base_from_camera")).transpose()?,
+    })
+}
+
+#[utoipa::path(post, path = "/odometry", tag = "ingest",
+    request_body = OdometryIn,
+    responses((status = 202, description = "Accepted"), (status = 409, body = super::error::Problem),
+        (status = 422, body = super::error::Problem)))]
+async fn post_odometry(
+    State(state): State<AppState>,
+    ApiJson(o): ApiJson<OdometryIn>,
+) -> Result<Accepted<serde_json::Value>, ApiError> {
+    let msg = validate_odometry(&o)?;
+    state
+        .ingest()
+        .push_odometry(msg)
+        .map_err(|e| ApiError::Stale(e.to_string()))?;
+    state.metrics.odometry_accepted.fetch_add(1, Ordering::Relaxed);
+    Ok(Accepted(serde_json::json!({ "stamp_ns": o.stamp_ns })))
+}
+
+fn latest(state: &AppState, id: &str) -> Result<std::sync::Arc<IngestedFrame>, ApiError> {
+    if !state.registry().cameras.contains_key(id) {
+        return Err(ApiError::not_found("camera", id));
+    }
+    state
+        .ingest()
+        .latest(id)
+        .ok_or_else(|| ApiError::NotReady(format!("camera '{id}' has sent no frame yet")))
+}
+
+#[utoipa::path(get, path = "/cameras/{id}/latest", tag = "ingest",
+    params(("id" = String, Path, description = "Camera id")),
+    responses((status = 200, body = LatestFrame), (status = 404, body = super::error::Problem),
+        (status = 503, body = super::error::Problem)))]
+async fn get_latest(State(state): State<AppState>, Path(id): Path<String>) -> Result<Json<LatestFrame>, ApiError> {
+    let f = latest(&state, &id)?;
+    Ok(Json(LatestFrame {
+        camera: id,
+        stamp_ns: f.stamp_ns,
+        detections: f.detections.clone(),
+        has_color: f.color.is_some(),
+    }))
+}
+
+fn png_response(img: image::RgbImage) -> Result<impl IntoResponse, ApiError> {
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png)
+        .map_err(ApiError::internal)?;
+    Ok((
+        [(header::CONTENT_TYPE, "image/png"), (header::CACHE_CONTROL, "no-store")],
+        out.into_inner(),
+    ))
+}
+
+/// Colourises depth (near = warm, far = cool, no reading = black).
+pub fn colourise_depth(d: &DepthImage) -> image::RgbImage {
+    let valid: Vec<f32> = d.data_m.iter().copied().filter(|v| *v > 0.0).collect();
+    let lo = valid.iter().copied().fold(f32::MAX, f32::min);
+    let hi = valid.iter().copied().fold(0.0f32, f32::max);
+    let span = (hi - lo).max(1e-6);
+    let mut img = image::RgbImage::new(d.width, d.height);
+    for (i, px) in img.pixels_mut().enumerate() {
+        let v = d.data_m[i];
+        if v > 0.0 {
+            let t = ((v - lo) / span).clamp(0.0, 1.0);
+            let r = (255.0 * (1.0 - t)) as u8;
+            let g = (255.0 * (1.0 - (2.0 * t - 1.0).abs())) as u8;
+            let b = (255.0 * t) as u8;
+            *px = image::Rgb([r, g, b]);
+        }
+    }
+    img
+}
+
+#[utoipa::path(get, path = "/cameras/{id}/latest/depth.png", tag = "ingest",
+    params(("id" = String, Path, description = "Camera id")),
+    responses((status = 200, description = "Colourised 8-bit depth", content_type = "image/png"),
+        (status = 404, body = super::error::Problem)))]
+async fn get_latest_depth_png(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<impl IntoResponse, ApiError> {
+    let f = latest(&state, &id)?;
+    png_response(colourise_depth(&f.depth))
+}
+
+#[utoipa::path(get, path = "/cameras/{id}/latest/color.png", tag = "ingest",
+    params(("id" = String, Path, description = "Camera id")),
+    responses((status = 200, description = "Latest colour image", content_type = "image/png"),
+        (status = 404, body = super::error::Problem)))]
+async fn get_latest_color_png(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<impl IntoResponse, ApiError> {
+    let f = latest(&state, &id)?;
+    let c = f
+        .color
+        .as_ref()
+        .ok_or_else(|| ApiError::NotReady(format!("camera '{id}' sent no colour image")))?;
+    let raw: Vec<u8> = c.data.iter().flatten().copied().collect();
+    let img =
+        image::RgbImage::from_raw(c.width, c.height, raw).ok_or_else(|| ApiError::internal("colour buffer size"))?;
+    png_response(img)
+}

@@ -1,0 +1,420 @@
+//! Background work of a server: the tracking worker (a dedicated thread that steps the tracker
+//! whenever frames arrive), the codebook builder and the once-a-second stats publisher.
+//!
+//! The [`Engine`] (the tracker and what it was built from) sits behind a mutex in the state:
+//! the worker holds it while stepping, decisions hold it only to draw samples.
+
+use super::AppState;
+use super::cameras::MountDto;
+use super::decisions::Drawn;
+use super::error::ApiError;
+use super::events::ServerEvent;
+use super::ingest::{FusionSet, IngestedFrame};
+use super::tracks::{ComponentDto, ParticleDto, RotationModeDto, TrackStatusDto, TrackView, TruthDto};
+use super::types::PoseDto;
+use crate::geometry::Pose;
+use crate::tracker::{CameraFrame, CameraMount, Detection, RobotOdometry, TrackStatus, Tracker};
+use rand::SeedableRng;
+use std::collections::{BTreeMap, HashSet};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+use std::time::Instant;
+
+/// Handle on the background work; `shutdown` stops it.
+pub struct Background {
+    stop: Arc<AtomicBool>,
+    stats: tokio::task::JoinHandle<()>,
+    worker: Option<std::thread::JoinHandle<()>>,
+    builder: Option<std::thread::JoinHandle<()>>,
+    state: AppState,
+}
+
+impl Background {
+    /// Stops the worker and the stats task and waits for both (so that the store can be
+    /// reopened afterwards).
+    pub async fn shutdown(mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        self.state.wake.notify_all();
+        self.stats.abort();
+        let _ = (&mut self.stats).await;
+        let threads: Vec<_> = self.worker.take().into_iter().chain(self.builder.take()).collect();
+        let _ = tokio::task::spawn_blocking(move || {
+            for t in threads {
+                let _ = t.join();
+            }
+        })
+        .await;
+        // A final snapshot of the tracks.
+        if let Err(e) = super::tracks::save_snapshots(&self.state) {
+            tracing::warn!("saving track snapshots: {e}");
+        }
+    }
+}
+
+/// Starts the stats task (needs a tokio runtime) and the tracking worker thread.
+pub fn start_background(state: &AppState) -> Background {
+    let stop = Arc::new(AtomicBool::new(false));
+    let stats = super::events::spawn_stats_task(state.clone());
+    let builder = super::codebooks::spawn_builder(state.clone(), stop.clone());
+    let worker = {
+        let (state, stop) = (state.clone(), stop.clone());
+        std::thread::Builder::new()
+            .name("pregrasp-tracking".into())
+            .spawn(move || run_worker(state, stop))
+            .ok()
+    };
+    Background {
+        stop,
+        stats,
+        worker,
+        builder,
+        state: state.clone(),
+    }
+}
+
+/// How often track snapshots are written to the store.
+pub const SNAPSHOT_PERIOD: Duration = Duration::from_secs(2);
+/// Most particles per track in a view (display only).
+pub const VIEW_MAX_PARTICLES: usize = 300;
+/// Samples per track in a view.
+pub const VIEW_SAMPLES: usize = 10;
+
+/// The tracker and what it was built from.
+pub struct Engine {
+    pub tracker: Tracker,
+    /// Camera set the tracker was built for.
+    cameras: BTreeMap<String, MountDto>,
+    /// Object id -> content hash and codebook grid step of the model in the tracker.
+    models: BTreeMap<String, (String, u32)>,
+    /// Stamp of the odometry given to the last step (odometry never goes back in time: a late
+    /// frame of a stationary camera is fused at the robot's latest pose).
+    odometry_stamp_ns: Option<i64>,
+    rng: rand_chacha::ChaCha8Rng,
+}
+
+impl Engine {
+    fn new(state: &AppState) -> Option<Self> {
+        let reg = state.registry();
+        let reference = super::cameras::reference_camera(&reg)?;
+        let mounts: BTreeMap<String, CameraMount> = reg
+            .cameras
+            .values()
+            .map(|c| {
+                let m = match c.mount {
+                    MountDto::Stationary { world_from_camera } => CameraMount::Stationary {
+                        world_from_camera: world_from_camera.to_pose("").unwrap_or_else(|_| Pose::identity()),
+                    },
+                    MountDto::Robot { base_from_camera } => CameraMount::Robot {
+                        base_from_camera: base_from_camera.to_pose("").unwrap_or_else(|_| Pose::identity()),
+                    },
+                };
+                (c.id.clone(), m)
+            })
+            .collect();
+        Some(Self {
+            tracker: Tracker::new(state.config.tracker.clone(), mounts, reference),
+            cameras: reg.cameras.iter().map(|(k, c)| (k.clone(), c.mount)).collect(),
+            models: BTreeMap::new(),
+            odometry_stamp_ns: None,
+            rng: rand_chacha::ChaCha8Rng::seed_from_u64(state.config.tracker.seed ^ 0x5eed),
+        })
+    }
+
+    /// Adds the objects whose codebooks became ready (or changed).
+    fn sync_models(&mut self, state: &AppState) {
+        let objects: Vec<(String, String, std::sync::Arc<crate::mesh::Mesh>)> = state
+            .registry()
+            .objects
+            .values()
+            .map(|o| (o.info.id.clone(), o.info.content_hash.clone(), o.mesh.clone()))
+            .collect();
+        for (id, hash, mesh) in objects {
+            let Some(cb) = state.codebooks.get(&id, &hash) else {
+                continue;
+            };
+            let key = (hash.clone(), cb.grid.step_deg());
+            if self.models.get(&id) == Some(&key) {
+                continue;
+            }
+            self.tracker.add_object_model(&id, (*mesh).clone(), cb);
+            self.models.insert(id, key);
+        }
+    }
+}
+
+/// Draws `n` poses from a track's distribution (reference frame) for a decision.
+pub fn draw_samples(state: &AppState, track_id: u64, n: usize) -> Result<Drawn, ApiError> {
+    let mut guard = state.engine.lock().unwrap_or_else(|p| p.into_inner());
+    let known = state.tracking.board().views.contains_key(&track_id);
+    let engine = guard
+        .as_mut()
+        .filter(|_| known)
+        .ok_or_else(|| ApiError::not_found("track", track_id.to_string()))?;
+    let track = engine
+        .tracker
+        .tracks()
+        .iter()
+        .find(|t| t.id == track_id)
+        .cloned()
+        .ok_or_else(|| ApiError::not_found("track", track_id.to_string()))?;
+    let estimate = engine
+        .tracker
+        .estimate(track_id)
+        .ok_or_else(|| ApiError::NotReady(format!("track {track_id} has no estimate yet")))?;
+    let samples = engine
+        .tracker
+        .sample_poses(track_id, n, &mut engine.rng)
+        .ok_or_else(|| ApiError::NotReady(format!("track {track_id} has no particles yet")))?;
+    Ok(Drawn {
+        object_id: track.object,
+        reference_from_object: estimate.reference_from_object,
+        samples,
+        world_from_reference: engine.tracker.world_from_reference(),
+    })
+}
+
+fn to_camera_frame(state: &AppState, f: &IngestedFrame) -> Option<CameraFrame> {
+    let intrinsics = state
+        .registry()
+        .cameras
+        .get(&f.camera)?
+        .intrinsics
+        .to_intrinsics()
+        .ok()?;
+    Some(CameraFrame {
+        camera: f.camera.clone(),
+        stamp_ns: f.stamp_ns,
+        intrinsics,
+        depth: f.depth.clone(),
+        color: f.color.clone(),
+        detections: f
+            .detections
+            .iter()
+            .map(|d| Detection {
+                object: d.object.clone(),
+                bbox_xywh_px: d.bbox_xywh_px,
+                score: d.score,
+            })
+            .collect(),
+    })
+}
+
+fn status_dto(s: TrackStatus) -> TrackStatusDto {
+    match s {
+        TrackStatus::Initialising => TrackStatusDto::Initialising,
+        TrackStatus::Tracking => TrackStatusDto::Tracking,
+        TrackStatus::Lost => TrackStatusDto::Lost,
+    }
+}
+
+/// Builds the views of every (not stopped) track after a step.
+fn views(state: &AppState, engine: &mut Engine, latency_ms: Option<f64>, stopped: &HashSet<u64>) -> Vec<TrackView> {
+    let world_from_reference = engine.tracker.world_from_reference();
+    let names: BTreeMap<String, String> = state
+        .registry()
+        .objects
+        .values()
+        .map(|o| (o.info.id.clone(), o.info.name.clone()))
+        .collect();
+    let truth = state.truth.lock().unwrap_or_else(|p| p.into_inner()).clone();
+    let tracks: Vec<_> = engine.tracker.tracks().to_vec();
+    let mut out = Vec::new();
+    for t in tracks.iter().filter(|t| !stopped.contains(&t.id)) {
+        let Some(e) = engine.tracker.estimate(t.id) else {
+            continue;
+        };
+        let world_from_object = world_from_reference * e.reference_from_object;
+        let particles = engine.tracker.particles(t.id).unwrap_or_default();
+        let stride = particles.len().div_ceil(VIEW_MAX_PARTICLES).max(1);
+        let particles = particles
+            .iter()
+            .step_by(stride)
+            .map(|p| {
+                let w = world_from_reference * nalgebra::Point3::from(p.position_in_reference_m);
+                ParticleDto {
+                    position_world_m: [w.x, w.y, w.z],
+                    camera: p.camera.clone(),
+                    weight: p.weight,
+                }
+            })
+            .collect();
+        let samples_world = engine
+            .tracker
+            .sample_poses(t.id, VIEW_SAMPLES, &mut engine.rng)
+            .map(|s| {
+                s.poses
+                    .iter()
+                    .map(|p| PoseDto::from_pose(&(world_from_reference * p)))
+                    .collect()
+            })
+            .unwrap_or_default();
+        let truth = truth.get(&t.object).map(|(_, w)| TruthDto {
+            translation_error_m: (w.translation.vector - world_from_object.translation.vector).norm(),
+            orientation_error_deg: w.rotation.angle_to(&world_from_object.rotation).to_degrees(),
+        });
+        let decision = state.tracking.board().views.get(&t.id).and_then(|v| v.decision.clone());
+        out.push(TrackView {
+            id: t.id,
+            object_id: t.object.clone(),
+            object_name: names.get(&t.object).cloned().unwrap_or_else(|| t.object.clone()),
+            status: status_dto(t.status),
+            stamp_ns: e.stamp_ns,
+            reference_from_object: PoseDto::from_pose(&e.reference_from_object),
+            world_from_object: PoseDto::from_pose(&world_from_object),
+            translation_std_m: e.translation_std_m,
+            rotation_entropy: e.rotation_entropy,
+            top_mode_mass: e.rotation_modes.iter().map(|m| m.mass).fold(0.0, f64::max),
+            covariance_6x6: e.covariance_6x6.iter().flatten().copied().collect(),
+            components: e
+                .components
+                .iter()
+                .map(|c| ComponentDto {
+                    camera: c.camera.clone(),
+                    weight: c.weight,
+                    mean_m: c.mean_m,
+                    covariance_m2: c.covariance_m2,
+                })
+                .collect(),
+            rotation_modes: e
+                .rotation_modes
+                .iter()
+                .map(|m| RotationModeDto {
+                    rotation_xyzw: m.rotation_xyzw,
+                    mass: m.mass,
+                })
+                .collect(),
+            particles,
+            samples_world,
+            decision,
+            truth,
+            ingest_to_estimate_ms: latency_ms,
+        });
+    }
+    out
+}
+
+fn step(state: &AppState, set: &FusionSet) {
+    let mut guard = state.engine.lock().unwrap_or_else(|p| p.into_inner());
+    // (Re)build the tracker when the cameras changed.
+    let cameras_now: BTreeMap<String, MountDto> = state
+        .registry()
+        .cameras
+        .iter()
+        .map(|(k, c)| (k.clone(), c.mount))
+        .collect();
+    if guard.as_ref().is_none_or(|e| e.cameras != cameras_now) {
+        *guard = Engine::new(state);
+    }
+    let Some(engine) = guard.as_mut() else { return };
+    engine.sync_models(state);
+    let mut frames: Vec<CameraFrame> = set.frames.iter().filter_map(|f| to_camera_frame(state, f)).collect();
+    // Detections start tracks: drop those of objects that already have enough live tracks.
+    let mut live: BTreeMap<&str, usize> = BTreeMap::new();
+    for t in engine.tracker.tracks() {
+        if t.status != TrackStatus::Lost {
+            *live.entry(t.object.as_str()).or_default() += 1;
+        }
+    }
+    let max_live = state.config.max_live_tracks_per_object;
+    for f in &mut frames {
+        f.detections
+            .retain(|d| live.get(d.object.as_str()).copied().unwrap_or(0) < max_live);
+    }
+    if frames.is_empty() {
+        return;
+    }
+    let stamp = frames.iter().map(|f| f.stamp_ns).max().unwrap_or(0);
+    let robot_base_from_camera = cameras_now.values().find_map(|m| match m {
+        MountDto::Robot { base_from_camera } => base_from_camera.to_pose("").ok(),
+        _ => None,
+    });
+    let odometry_stamp = engine.odometry_stamp_ns.map_or(stamp, |s| s.max(stamp));
+    let odometry = robot_base_from_camera.and_then(|registered| {
+        state.ingest().odometry_at(odometry_stamp).map(|o| RobotOdometry {
+            stamp_ns: odometry_stamp,
+            odom_from_base: o.odom_from_base,
+            world_from_odom: o.world_from_odom,
+            base_from_camera: o.base_from_camera.unwrap_or(registered),
+        })
+    });
+    if odometry.is_some() {
+        engine.odometry_stamp_ns = Some(odometry_stamp);
+    }
+    let t0 = Instant::now();
+    match engine.tracker.step(&frames, odometry.as_ref()) {
+        Ok(_) => {
+            let m = &state.metrics;
+            let us = t0.elapsed().as_micros() as u64;
+            m.steps.fetch_add(1, Ordering::Relaxed);
+            m.step_latency_us_sum.fetch_add(us, Ordering::Relaxed);
+            m.last_step_latency_us.store(us, Ordering::Relaxed);
+        }
+        Err(e) => {
+            state.metrics.step_errors.fetch_add(1, Ordering::Relaxed);
+            tracing::warn!("tracker step failed: {e}");
+            return;
+        }
+    }
+    let stopped: HashSet<u64> = state.tracking.board().stopped.iter().copied().collect();
+    let newest_received = set.frames.iter().map(|f| f.received).max();
+    let latency_ms = newest_received.map(|r| r.elapsed().as_secs_f64() * 1e3);
+    let views = views(state, engine, latency_ms, &stopped);
+    {
+        let mut ring = state
+            .metrics
+            .ingest_to_estimate_us
+            .lock()
+            .unwrap_or_else(|p| p.into_inner());
+        for f in &set.frames {
+            ring.push(f.received.elapsed().as_micros() as u64);
+        }
+    }
+    state.tracking.board_mut().world_from_reference = Some(PoseDto::from_pose(&engine.tracker.world_from_reference()));
+    drop(guard);
+    for v in views {
+        let json = serde_json::to_value(&v).unwrap_or_default();
+        state.tracking.publish(v);
+        state.publish(ServerEvent::Track(json));
+    }
+}
+
+fn run_worker(state: AppState, stop: Arc<AtomicBool>) {
+    let mut last_snapshot = Instant::now();
+    while !stop.load(Ordering::Relaxed) {
+        let set = {
+            let mut ingest = state.ingest();
+            loop {
+                if stop.load(Ordering::Relaxed) {
+                    return;
+                }
+                if let Some(set) = ingest.take_fusion_set() {
+                    break Some(set);
+                }
+                let (g, timeout) = state
+                    .wake
+                    .wait_timeout(ingest, Duration::from_millis(200))
+                    .unwrap_or_else(|p| p.into_inner());
+                ingest = g;
+                if timeout.timed_out() {
+                    break None;
+                }
+            }
+        };
+        if let Some(set) = set {
+            state
+                .metrics
+                .frames_dropped
+                .fetch_add(set.superseded as u64, Ordering::Relaxed);
+            if !set.frames.is_empty() {
+                step(&state, &set);
+            }
+        }
+        if last_snapshot.elapsed() >= SNAPSHOT_PERIOD {
+            last_snapshot = Instant::now();
+            if let Err(e) = super::tracks::save_snapshots(&state) {
+                tracing::warn!("saving track snapshots: {e}");
+            }
+        }
+    }
+}

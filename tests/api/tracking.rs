@@ -1,0 +1,384 @@
+//! End to end: register over HTTP, stream a short rendered sequence (two stationary cameras,
+//! one moving robot camera with odometry), check estimates and decisions against ground truth,
+//! restart and find the registry and tracks intact.
+
+use crate::{TestApp, spawn_app};
+use base64::Engine as _;
+use nalgebra::{Translation3, UnitQuaternion, Vector3};
+use pregrasp::camera::Intrinsics;
+use pregrasp::geometry::Pose;
+use pregrasp::mesh::Mesh;
+use serde_json::{Value, json};
+use std::time::Duration;
+
+const W: u32 = 160;
+const H: u32 = 120;
+const F_PX: f64 = 150.0;
+const MOVE: f64 = 1.0;
+
+fn pose_json(p: &Pose) -> Value {
+    let q = p.rotation.coords;
+    let t = p.translation.vector;
+    json!({"rotation_xyzw": [q.x, q.y, q.z, q.w], "translation_m": [t.x, t.y, t.z]})
+}
+
+fn pose_from_json(v: &Value) -> Pose {
+    let q: Vec<f64> = v["rotation_xyzw"]
+        .as_array()
+        .expect("q")
+        .iter()
+        .filter_map(Value::as_f64)
+        .collect();
+    let t: Vec<f64> = v["translation_m"]
+        .as_array()
+        .expect("t")
+        .iter()
+        .filter_map(Value::as_f64)
+        .collect();
+    pregrasp::geometry::pose_from_xyzw([t[0], t[1], t[2]], [q[0], q[1], q[2], q[3]]).expect("pose")
+}
+
+/// `world_from_camera` of a camera at `eye` looking at `target` (world z up, optical frame).
+fn look_at(eye: [f64; 3], target: [f64; 3]) -> Pose {
+    let eye = Vector3::from(eye);
+    let z = (Vector3::from(target) - eye).normalize();
+    let x = z.cross(&Vector3::z()).normalize();
+    let y = z.cross(&x);
+    let m = nalgebra::Matrix3::from_columns(&[x, y, z]);
+    let r = UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(m));
+    Pose::from_parts(Translation3::from(eye), r)
+}
+
+struct Scene {
+    object: Mesh,
+    world_from_object: Pose,
+    table: Mesh,
+}
+
+impl Scene {
+    fn new() -> Self {
+        let object = pregrasp::mesh::builtin("box").expect("box");
+        let b = object.bounds();
+        let world_from_object = Pose::from_parts(
+            Translation3::new(0.05, 0.02, -b.min_m.z),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.6),
+        );
+        let mut table = pregrasp::mesh::builtin_box([2.0, 2.0, 0.02], [[120, 100, 80], [120, 100, 80]]);
+        for v in &mut table.vertices_m {
+            v[2] -= 0.01;
+        }
+        Self {
+            object,
+            world_from_object,
+            table,
+        }
+    }
+
+    /// A JSON frame (raw f32 depth, PNG colour, a detection from the instance mask).
+    fn frame(&self, world_from_camera: &Pose, stamp_ns: i64) -> Value {
+        let k = Intrinsics::from_focal(W, H, F_PX).expect("k");
+        let cfw = world_from_camera.inverse();
+        let img = pregrasp::tracker::raster::render(
+            &k,
+            &[(&self.object, cfw * self.world_from_object), (&self.table, cfw)],
+            0.05,
+            [30, 30, 30],
+        );
+        let depth: Vec<u8> = img.depth.data_m.iter().flat_map(|d| d.to_le_bytes()).collect();
+        let raw: Vec<u8> = img.color.data.iter().flatten().copied().collect();
+        let mut png = std::io::Cursor::new(Vec::new());
+        image::RgbImage::from_raw(W, H, raw)
+            .expect("rgb")
+            .write_to(&mut png, image::ImageFormat::Png)
+            .expect("png");
+        let (mut x0, mut y0, mut x1, mut y1, mut n) = (u32::MAX, u32::MAX, 0, 0, 0);
+        for y in 0..H {
+            for x in 0..W {
+                if img.instance[(y * W + x) as usize] == 1 {
+                    (x0, y0, x1, y1, n) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y), n + 1);
+                }
+            }
+        }
+        let detections = if n > 20 {
+            json!([{"object": "box", "bbox_xywh_px": [x0, y0, x1 - x0 + 1, y1 - y0 + 1], "score": 1.0}])
+        } else {
+            json!([])
+        };
+        let b64 = base64::engine::general_purpose::STANDARD;
+        json!({
+            "stamp_ns": stamp_ns,
+            "depth": {"encoding": "f32le", "data_base64": b64.encode(depth)},
+            "color": {"data_base64": b64.encode(png.into_inner())},
+            "detections": detections,
+        })
+    }
+}
+
+fn camera_spec(mount: Value) -> Value {
+    json!({
+        "intrinsics": {"width": W, "height": H, "k": [F_PX, 0.0, W as f64 / 2.0, 0.0, F_PX, H as f64 / 2.0, 0.0, 0.0, 1.0]},
+        "mount": mount,
+    })
+}
+
+async fn wait_for<F: Fn(&Value) -> bool>(app: &TestApp, path: &str, what: &str, ok: F) -> Value {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(120);
+    loop {
+        let v = app.get_json(path).await;
+        if ok(&v) {
+            return v;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "timed out waiting for {what}: {v}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn replayed_scene_is_tracked_decided_and_survives_restart() {
+    let app = spawn_app().await;
+    let scene = Scene::new();
+    let ext1 = look_at([-0.9, -0.3, 0.6], [0.0, 0.0, 0.08]);
+    let ext2 = look_at([0.3, -0.9, 0.7], [0.0, 0.0, 0.08]);
+    // The robot: base on the floor driving towards the table along +x; camera 1.2 m up.
+    let base_from_camera = look_at([0.0, 0.0, 1.2], [1.0, 0.0, 0.7]);
+    let world_from_base = |i: i64| {
+        Pose::from_parts(
+            Translation3::new(-1.4 + 0.03 * i as f64 * MOVE, 0.1, -0.75),
+            UnitQuaternion::identity(),
+        )
+    };
+
+    assert_eq!(
+        app.put_json(
+            "/cameras/ext1",
+            &camera_spec(json!({"type": "stationary", "world_from_camera": pose_json(&ext1)}))
+        )
+        .await
+        .status(),
+        200
+    );
+    assert_eq!(
+        app.put_json(
+            "/cameras/ext2",
+            &camera_spec(json!({"type": "stationary", "world_from_camera": pose_json(&ext2)}))
+        )
+        .await
+        .status(),
+        200
+    );
+    assert_eq!(
+        app.put_json(
+            "/cameras/robot",
+            &camera_spec(json!({"type": "robot", "base_from_camera": pose_json(&base_from_camera)}))
+        )
+        .await
+        .status(),
+        200
+    );
+    let ply = scene.object.to_ply_bytes();
+    assert_eq!(
+        app.put_bytes("/objects/box?name=Box", "application/octet-stream", ply)
+            .await
+            .status(),
+        200
+    );
+    let plane = json!({"normal": [0.0, 0.0, 1.0], "point_m": [0.0, 0.0, 0.0]});
+    assert_eq!(app.put_json("/scene/support_plane", &plane).await.status(), 200);
+    wait_for(&app, "/objects/box", "the coarse codebook", |v| {
+        v["codebook"]["status"] == "ready"
+    })
+    .await;
+
+    let truth = json!({"stamp_ns": 0, "objects": [{"object": "box", "world_from_object": pose_json(&scene.world_from_object)}]});
+    assert_eq!(app.post_json("/truth", &truth).await.status(), 202);
+
+    let period_ns = 100_000_000i64;
+    for i in 0..10i64 {
+        let t = 1_000_000_000 + i * period_ns;
+        let odo = json!({
+            "stamp_ns": t,
+            "odom_from_base": {"pose": pose_json(&world_from_base(i))},
+            "world_from_odom": pose_json(&Pose::identity()),
+        });
+        assert_eq!(app.post_json("/odometry", &odo).await.status(), 202);
+        // Cameras out of step: ext2 20 ms late, ext1 40 ms late (inside the 300 ms window).
+        let robot_frame = scene.frame(&(world_from_base(i) * base_from_camera), t);
+        assert_eq!(app.post_json("/cameras/robot/frames", &robot_frame).await.status(), 202);
+        assert_eq!(
+            app.post_json("/cameras/ext2/frames", &scene.frame(&ext2, t - 20_000_000))
+                .await
+                .status(),
+            202
+        );
+        assert_eq!(
+            app.post_json("/cameras/ext1/frames", &scene.frame(&ext1, t - 40_000_000))
+                .await
+                .status(),
+            202
+        );
+        // Let the tracker keep up (a robot streams at 10 Hz).
+        wait_for(&app, "/tracks", "a step", |v| {
+            i < 2
+                || v.as_array()
+                    .is_some_and(|a| a.iter().any(|tr| tr["stamp_ns"].as_i64() >= Some(t_minus(t))))
+        })
+        .await;
+    }
+    let tracks = app.get_json("/tracks").await;
+    let tracks = tracks.as_array().expect("tracks");
+    // Every camera's first detection may open a track; the tracker merges or loses the extra
+    // ones over time. The best-converged track (smallest spread) must be on the truth.
+    for t in tracks {
+        eprintln!(
+            "track {} status {} std {:.3} truth {} components {}",
+            t["id"],
+            t["status"],
+            t["translation_std_m"].as_f64().unwrap_or(f64::NAN),
+            t["truth"],
+            t["components"]
+                .as_array()
+                .map(|c| c
+                    .iter()
+                    .map(|c| format!("{}:{:.2}", c["camera"], c["weight"].as_f64().unwrap_or(0.0)))
+                    .collect::<Vec<_>>()
+                    .join(","))
+                .unwrap_or_default()
+        );
+    }
+    assert!(!tracks.is_empty());
+    assert!(tracks.iter().all(|t| t["object_id"] == "box"));
+    let t = tracks
+        .iter()
+        .min_by(|a, b| {
+            a["translation_std_m"]
+                .as_f64()
+                .partial_cmp(&b["translation_std_m"].as_f64())
+                .expect("finite")
+        })
+        .expect("a track");
+    assert_eq!(t["object_id"], "box");
+    assert_eq!(t["object_name"], "Box");
+    assert_eq!(t["status"], "tracking");
+    let est = pose_from_json(&t["world_from_object"]);
+    let err_m = (est.translation.vector - scene.world_from_object.translation.vector).norm();
+    assert!(err_m < 0.03, "translation error {err_m} m");
+    let truth_err = t["truth"]["translation_error_m"].as_f64().expect("truth error");
+    assert!((truth_err - err_m).abs() < 1e-6);
+    assert!(!t["particles"].as_array().expect("particles").is_empty());
+    assert_eq!(t["samples_world"].as_array().expect("samples").len(), 10);
+    assert_eq!(t["covariance_6x6"].as_array().expect("cov").len(), 36);
+    // The robot camera's estimated pose is where the robot put it.
+    let scene_doc = app.get_json("/scene").await;
+    let robot = scene_doc["cameras"]
+        .as_array()
+        .expect("cams")
+        .iter()
+        .find(|c| c["id"] == "robot")
+        .expect("robot")
+        .clone();
+    let wfc = pose_from_json(&robot["world_from_camera"]);
+    let expected = world_from_base(9) * base_from_camera;
+    assert!((wfc.translation.vector - expected.translation.vector).norm() < 1e-6);
+
+    // Samples from the distribution, in both frames.
+    let samples = app.get_json(&format!("/tracks/{}/samples?n=50", t["id"])).await;
+    assert_eq!(samples["world_from_object"].as_array().expect("samples").len(), 50);
+    let near = samples["world_from_object"]
+        .as_array()
+        .expect("samples")
+        .iter()
+        .filter(|p| (pose_from_json(p).translation.vector - scene.world_from_object.translation.vector).norm() < 0.05)
+        .count();
+    assert!(near >= 40, "{near} of 50 samples within 5 cm of the truth");
+    crate::assert_problem(app.get(&format!("/tracks/{}/samples?n=0", t["id"])).await, 422).await;
+    let history = app.get_json(&format!("/tracks/{}/history", t["id"])).await;
+    assert!(history.as_array().expect("history").len() >= 3);
+
+    // A decision with the default gripper and the table.
+    let id = t["id"].as_u64().expect("id");
+    let r = app
+        .post_json(
+            &format!("/tracks/{id}/decision"),
+            &json!({"n_samples": 200, "threshold": 0.8}),
+        )
+        .await;
+    assert_eq!(r.status(), 200);
+    let d: Value = r.json().await.expect("decision");
+    let p = d["p_success"].as_f64().expect("p");
+    assert!((0.0..=1.0).contains(&p));
+    let verdict = d["decision"].as_str().expect("verdict");
+    assert!(verdict == "grasp" || verdict == "observe");
+    let lo = d["ci95"][0].as_f64().expect("lo");
+    assert_eq!(verdict == "grasp", lo >= 0.8, "{d}");
+    // The gripper is placed on the estimate: within the object's reach of the truth.
+    let wfg = pose_from_json(&d["world_from_gripper"]);
+    assert!((wfg.translation.vector - scene.world_from_object.translation.vector).norm() < 0.3);
+    assert!(app.get_json(&format!("/tracks/{id}")).await["decision"]["p_success"].is_number());
+    // Bad decision queries change nothing.
+    crate::assert_problem(
+        app.post_json(&format!("/tracks/{id}/decision"), &json!({"threshold": 1.5}))
+            .await,
+        422,
+    )
+    .await;
+    crate::assert_problem(app.post_json("/tracks/999/decision", &json!({})).await, 404).await;
+    crate::assert_problem(
+        app.post_json(&format!("/tracks/{id}/decision"), &json!({"gripper": "nope"}))
+            .await,
+        404,
+    )
+    .await;
+    crate::assert_problem(
+        app.post_json(&format!("/tracks/{id}/decision"), &json!({"bogus": 1}))
+            .await,
+        422,
+    )
+    .await;
+
+    let metrics = app
+        .client
+        .get(app.url("/metrics"))
+        .send()
+        .await
+        .expect("m")
+        .text()
+        .await
+        .expect("t");
+    assert!(
+        metrics.contains("pregrasp_ingest_to_estimate_seconds{quantile=\"0.5\"}"),
+        "{metrics}"
+    );
+
+    // Restart: registry and tracks intact.
+    let app = app.restart().await;
+    assert_eq!(app.get_json("/cameras").await.as_array().expect("cams").len(), 3);
+    assert_eq!(app.get_json("/objects/box").await["name"], "Box");
+    let after = app.get_json(&format!("/tracks/{id}")).await;
+    assert_eq!(after["object_id"], "box");
+    let est2 = pose_from_json(&after["world_from_object"]);
+    assert!((est2.translation.vector - est.translation.vector).norm() < 0.05);
+    // The codebook comes back from the cache.
+    wait_for(&app, "/objects/box", "the cached codebook", |v| {
+        v["codebook"]["status"] == "ready"
+    })
+    .await;
+
+    // Stopping a track.
+    let r = app
+        .client
+        .delete(app.api(&format!("/tracks/{id}")))
+        .send()
+        .await
+        .expect("delete");
+    assert_eq!(r.status(), 204);
+    crate::assert_problem(app.get(&format!("/tracks/{id}")).await, 404).await;
+}
+
+/// The stamp the tracker has reached when it fused the frames of step `t` (the robot frame is
+/// the newest).
+fn t_minus(t: i64) -> i64 {
+    t - 50_000_000
+}
