@@ -7,11 +7,12 @@
 use super::AppState;
 use super::objects::{CodebookState, CodebookStatus, set_codebook_status};
 use crate::geometry::RotationGrid;
+use crate::render::Renderer;
 use crate::tracker::Codebook;
-use crate::tracker::codebook::{CodebookConfig, CpuViews};
+use crate::tracker::codebook::{CodebookConfig, CpuViews, RendererViews, ViewSource};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Duration;
 
 /// Ready codebooks per object id, with the content hash they were built for.
@@ -65,8 +66,21 @@ fn build(state: &AppState, object_id: &str, step_deg: u32, config: &CodebookConf
     };
     let grid = RotationGrid::new(step_deg).map_err(|e| e.to_string())?;
     let cache = state.config.data_dir.join("codebooks");
-    let cb =
-        Codebook::load_or_build_with(&CpuViews(&mesh), &mesh, grid, config, Some(&cache)).map_err(|e| e.to_string())?;
+    // Templates come from the wgpu renderer (a real GPU, or lavapipe without one); the CPU
+    // rasteriser is the fallback for machines where wgpu finds no usable adapter at all.
+    let gpu_views = template_renderer().and_then(|r| match RendererViews::new(r, &mesh) {
+        Ok(v) => Some(v),
+        Err(e) => {
+            tracing::warn!("cannot upload {object_id} to the renderer ({e}); using the CPU rasteriser");
+            None
+        }
+    });
+    let cpu_views = CpuViews(&mesh);
+    let source: &dyn ViewSource = match &gpu_views {
+        Some(v) => v,
+        None => &cpu_views,
+    };
+    let cb = Codebook::load_or_build_with(source, &mesh, grid, config, Some(&cache)).map_err(|e| e.to_string())?;
     tracing::info!(
         "codebook of {object_id}: {step_deg} deg grid, {} bins, {:.1} s{}",
         cb.n_bins(),
@@ -75,6 +89,24 @@ fn build(state: &AppState, object_id: &str, step_deg: u32, config: &CodebookConf
     );
     state.codebooks.put(object_id, &hash, Arc::new(cb));
     Ok(())
+}
+
+/// The process's wgpu renderer (codebook templates, demo cameras), created on first use;
+/// `None` when wgpu has no adapter.
+pub(crate) fn template_renderer() -> Option<&'static Renderer> {
+    static RENDERER: OnceLock<Option<Renderer>> = OnceLock::new();
+    RENDERER
+        .get_or_init(|| match Renderer::new() {
+            Ok(r) => {
+                tracing::info!("codebook templates rendered with wgpu on {}", r.adapter_name());
+                Some(r)
+            }
+            Err(e) => {
+                tracing::warn!("no wgpu adapter ({e}); codebook templates use the CPU rasteriser");
+                None
+            }
+        })
+        .as_ref()
 }
 
 /// Starts the builder thread; it stops when `stop` is set.

@@ -52,6 +52,9 @@ pub fn look_at(eye: [f64; 3], target: [f64; 3]) -> Pose {
     Pose::from_parts(Translation3::from(eye), r)
 }
 
+/// Background colour of the demo's cameras.
+const DEMO_BACKGROUND_RGB: [u8; 3] = [40, 44, 52];
+
 /// The demo world.
 pub struct DemoScene {
     pub objects: Vec<(String, Mesh, Pose)>,
@@ -59,6 +62,9 @@ pub struct DemoScene {
     pub stationary: Vec<(String, Pose)>,
     pub base_from_camera: Pose,
     pub intrinsics: Intrinsics,
+    /// The objects (instance ids 1..) and the table uploaded to the wgpu renderer, on first use;
+    /// `None` when wgpu has no adapter (the CPU rasteriser renders instead).
+    gpu_scene: std::sync::OnceLock<Option<Vec<crate::render::SceneObject>>>,
 }
 
 impl DemoScene {
@@ -89,6 +95,7 @@ impl DemoScene {
             ],
             base_from_camera: look_at([0.0, 0.0, 1.25], [1.0, 0.0, 0.55]),
             intrinsics: Intrinsics::from_focal(DEMO_WIDTH_PX, DEMO_HEIGHT_PX, DEMO_FOCAL_PX)?,
+            gpu_scene: std::sync::OnceLock::new(),
         })
     }
 
@@ -100,13 +107,62 @@ impl DemoScene {
         Pose::from_parts(Translation3::new(x, 0.05, -0.75), UnitQuaternion::identity())
     }
 
+    /// One camera's image from the wgpu renderer (lavapipe without a GPU); `None` when wgpu has
+    /// no adapter or the render fails.
+    fn render_gpu(&self, camera_from_world: &Pose) -> Option<crate::render::SceneRender> {
+        let renderer = super::codebooks::template_renderer()?;
+        let scene = self
+            .gpu_scene
+            .get_or_init(|| {
+                let mut out = Vec::new();
+                for (i, (_, mesh, world_from_object)) in self.objects.iter().enumerate() {
+                    out.push(crate::render::SceneObject {
+                        mesh: renderer.upload_mesh(mesh).ok()?,
+                        world_from_object: *world_from_object,
+                        instance_id: i as u16 + 1,
+                    });
+                }
+                out.push(crate::render::SceneObject {
+                    mesh: renderer.upload_mesh(&self.table).ok()?,
+                    world_from_object: Pose::identity(),
+                    instance_id: u16::MAX,
+                });
+                Some(out)
+            })
+            .as_ref()?;
+        let clip = crate::render::ClipRange::new(0.05, 20.0).ok()?;
+        match renderer.render_scene_with_background(
+            &self.intrinsics,
+            camera_from_world,
+            scene,
+            clip,
+            DEMO_BACKGROUND_RGB,
+        ) {
+            Ok(img) => Some(img),
+            Err(e) => {
+                tracing::warn!("demo render failed ({e}); using the CPU rasteriser");
+                None
+            }
+        }
+    }
+
     /// Renders one camera: depth with noise, colour, detections from the instance mask.
     pub fn render(&self, camera: &str, world_from_camera: &Pose, stamp_ns: i64, rng: &mut impl Rng) -> IngestedFrame {
         let k = &self.intrinsics;
         let cfw = world_from_camera.inverse();
-        let mut list: Vec<(&Mesh, Pose)> = self.objects.iter().map(|(_, m, p)| (m, cfw * p)).collect();
-        list.push((&self.table, cfw));
-        let mut img = crate::tracker::raster::render(k, &list, 0.05, [40, 44, 52]);
+        let mut img = match self.render_gpu(&cfw) {
+            Some(img) => img,
+            None => {
+                let mut list: Vec<(&Mesh, Pose)> = self.objects.iter().map(|(_, m, p)| (m, cfw * p)).collect();
+                list.push((&self.table, cfw));
+                let r = crate::tracker::raster::render(k, &list, 0.05, DEMO_BACKGROUND_RGB);
+                crate::render::SceneRender {
+                    depth: r.depth,
+                    color: r.color,
+                    instance: r.instance,
+                }
+            }
+        };
         for d in &mut img.depth.data_m {
             if *d > 0.0 {
                 *d *= 1.0 + (DEMO_DEPTH_NOISE_REL * (rng.random::<f64>() * 2.0 - 1.0)) as f32;

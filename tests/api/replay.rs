@@ -40,7 +40,12 @@ async fn replay_streams_a_sequence_and_asks_for_decisions() {
     let deadline = tokio::time::Instant::now() + std::time::Duration::from_secs(90);
     let mug = loop {
         let tracks = app.get_json("/tracks").await;
-        if let Some(t) = tracks.as_array().expect("tracks").iter().find(|t| t["object_id"] == "025_mug") {
+        if let Some(t) = tracks
+            .as_array()
+            .expect("tracks")
+            .iter()
+            .find(|t| t["object_id"] == "025_mug")
+        {
             break t.clone();
         }
         assert!(tokio::time::Instant::now() < deadline, "no mug track: {tracks}");
