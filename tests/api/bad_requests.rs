@@ -235,14 +235,6 @@ async fn bad_requests_get_problem_documents_and_change_nothing() {
     assert_eq!(snapshot(&app).await, before);
     let latest = app.get_json("/cameras/ext1/latest").await;
     assert_eq!(latest["stamp_ns"], 1_500_000_000i64);
-    let metrics = app
-        .client
-        .get(app.url("/metrics"))
-        .send()
-        .await
-        .expect("m")
-        .text()
-        .await
-        .expect("t");
+    let metrics = app.metrics_text().await;
     assert!(metrics.contains("pregrasp_frames_stale_total 2"), "{metrics}");
 }

@@ -111,15 +111,7 @@ async fn frames_in_both_encodings_are_taken_and_served_back() {
     assert!(seen.contains("event: frame"), "{seen}");
     assert!(seen.contains("\"camera\":\"robot\""), "{seen}");
 
-    let metrics = app
-        .client
-        .get(app.url("/metrics"))
-        .send()
-        .await
-        .expect("m")
-        .text()
-        .await
-        .expect("t");
+    let metrics = app.metrics_text().await;
     assert!(metrics.contains("pregrasp_frames_accepted_total 2"), "{metrics}");
     assert!(metrics.contains("pregrasp_odometry_accepted_total 3"), "{metrics}");
 

@@ -45,6 +45,17 @@ impl TestApp {
         assert!(r.status().is_success(), "GET {path}: {}", r.status());
         r.json().await.expect("json")
     }
+    /// The Prometheus text of `/metrics`.
+    pub async fn metrics_text(&self) -> String {
+        let r = self
+            .client
+            .get(self.url("/metrics"))
+            .send()
+            .await
+            .expect("GET /metrics");
+        assert!(r.status().is_success(), "GET /metrics: {}", r.status());
+        r.text().await.expect("metrics text")
+    }
     pub async fn put_json(&self, path: &str, body: &Value) -> reqwest::Response {
         self.auth(self.client.put(self.api(path)).json(body))
             .send()

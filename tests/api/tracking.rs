@@ -338,15 +338,7 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
     )
     .await;
 
-    let metrics = app
-        .client
-        .get(app.url("/metrics"))
-        .send()
-        .await
-        .expect("m")
-        .text()
-        .await
-        .expect("t");
+    let metrics = app.metrics_text().await;
     assert!(
         metrics.contains("pregrasp_ingest_to_estimate_seconds{quantile=\"0.5\"}"),
         "{metrics}"
