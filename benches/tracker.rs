@@ -37,17 +37,7 @@ fn mesh() -> Mesh {
     Mesh::load(&path).unwrap_or_else(|_| pregrasp::mesh::builtin("box").expect("built-in box"))
 }
 
-fn look_at(eye: [f64; 3], target: [f64; 3]) -> Pose {
-    let eye = Vector3::from(eye);
-    let z = (Vector3::from(target) - eye).normalize();
-    let x = z.cross(&Vector3::z()).normalize();
-    let y = z.cross(&x);
-    let m = nalgebra::Matrix3::from_columns(&[x, y, z]);
-    Pose::from_parts(
-        Translation3::from(eye),
-        UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(m)),
-    )
-}
+use pregrasp::geometry::look_at;
 
 fn frame(
     name: &str,

@@ -376,6 +376,22 @@ pub fn rotation_to_euler(r: &UnitQuaternion<f64>) -> (f64, f64, f64) {
     (e, a, theta)
 }
 
+/// `world_from_camera` of a camera at `eye` looking at `target`, with the world's +z up: the
+/// optical axis (z) points at the target, x is image right, y image down. Looking straight
+/// down or up, x is the world's x.
+pub fn look_at(eye: [f64; 3], target: [f64; 3]) -> Pose {
+    let eye = Vector3::from(eye);
+    let z = (Vector3::from(target) - eye).normalize();
+    let mut x = z.cross(&Vector3::z());
+    if x.norm() < 1e-9 {
+        x = Vector3::x();
+    }
+    let x = x.normalize();
+    let y = z.cross(&x);
+    let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
+    Isometry3::from_parts(Translation3::from(eye), UnitQuaternion::from_rotation_matrix(&r))
+}
+
 /// A unit vector axis; convenience for tests and callers.
 pub fn axis(v: Vector3<f64>) -> Unit<Vector3<f64>> {
     Unit::new_normalize(v)
@@ -481,6 +497,21 @@ mod tests {
         // the ray rotation maps the optical axis onto the ray
         let ray = ray_rotation(&p) * Vector3::z();
         assert_relative_eq!(ray, p.normalize(), epsilon = 1e-12);
+    }
+
+    #[test]
+    fn look_at_points_the_optical_axis_at_the_target_with_y_down() {
+        let world_from_camera = look_at([1.0, 0.0, 1.0], [0.0, 0.0, 0.0]);
+        let target_in_camera = world_from_camera.inverse() * nalgebra::Point3::origin();
+        assert_relative_eq!(
+            target_in_camera.coords,
+            Vector3::new(0.0, 0.0, 2f64.sqrt()),
+            epsilon = 1e-12
+        );
+        // image down (y) has a negative world z component: the world's up is up in the image
+        assert!((world_from_camera.rotation * Vector3::y()).z < 0.0);
+        let straight_down = look_at([0.0, 0.0, 2.0], [0.0, 0.0, 0.0]);
+        assert_relative_eq!(straight_down.rotation * Vector3::z(), -Vector3::z(), epsilon = 1e-12);
     }
 
     #[test]

@@ -41,16 +41,7 @@ pub const DEMO_DEPTH_NOISE_REL: f64 = 0.01;
 /// Minimum visible pixels for a detection.
 pub const DEMO_MIN_DETECTION_PX: usize = 30;
 
-/// `world_from_camera` of a camera at `eye` looking at `target` (world z up, optical frame).
-pub fn look_at(eye: [f64; 3], target: [f64; 3]) -> Pose {
-    let eye = Vector3::from(eye);
-    let z = (Vector3::from(target) - eye).normalize();
-    let x = z.cross(&Vector3::z()).normalize();
-    let y = z.cross(&x);
-    let m = nalgebra::Matrix3::from_columns(&[x, y, z]);
-    let r = UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(m));
-    Pose::from_parts(Translation3::from(eye), r)
-}
+pub use crate::geometry::look_at;
 
 /// Background colour of the demo's cameras.
 const DEMO_BACKGROUND_RGB: [u8; 3] = [40, 44, 52];

@@ -9,7 +9,7 @@ use crate::camera::Intrinsics;
 use crate::dataset::{LocalisationSigma, OdometrySample};
 use crate::geometry::Pose;
 use crate::mesh::Mesh;
-use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector2, Vector3};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
@@ -63,15 +63,7 @@ pub struct RobotPlan {
 
 /// Optical frame looking from `eye` at `target` with the world's +z up (x right, y down).
 pub fn look_at(eye: &Point3<f64>, target: &Point3<f64>) -> Pose {
-    let z = (target - eye).normalize();
-    let mut x = z.cross(&Vector3::z());
-    if x.norm() < 1e-9 {
-        x = Vector3::x();
-    }
-    let x = x.normalize();
-    let y = z.cross(&x);
-    let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
-    Isometry3::from_parts(Translation3::from(eye.coords), UnitQuaternion::from_rotation_matrix(&r))
+    crate::geometry::look_at(eye.coords.into(), target.coords.into())
 }
 
 fn planar(x: f64, y: f64, z: f64, yaw_rad: f64) -> Pose {

@@ -38,16 +38,7 @@ fn pose_from_json(v: &Value) -> Pose {
     pregrasp::geometry::pose_from_xyzw([t[0], t[1], t[2]], [q[0], q[1], q[2], q[3]]).expect("pose")
 }
 
-/// `world_from_camera` of a camera at `eye` looking at `target` (world z up, optical frame).
-fn look_at(eye: [f64; 3], target: [f64; 3]) -> Pose {
-    let eye = Vector3::from(eye);
-    let z = (Vector3::from(target) - eye).normalize();
-    let x = z.cross(&Vector3::z()).normalize();
-    let y = z.cross(&x);
-    let m = nalgebra::Matrix3::from_columns(&[x, y, z]);
-    let r = UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(m));
-    Pose::from_parts(Translation3::from(eye), r)
-}
+use pregrasp::geometry::look_at;
 
 struct Scene {
     object: Mesh,

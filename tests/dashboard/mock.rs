@@ -18,7 +18,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use futures::Stream;
 use futures::StreamExt as _;
-use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Vector3};
 use serde_json::{Value, json};
 use tokio::sync::watch;
 use tower_http::services::ServeDir;
@@ -82,16 +82,7 @@ fn pose_json(p: &Isometry3<f64>) -> Value {
     json!({ "rotation_xyzw": [q.x, q.y, q.z, q.w], "translation_m": [t.x, t.y, t.z] })
 }
 
-/// world_from_camera of a camera at `eye` looking at `target` (optical frame: x right, y down,
-/// z forward; world z up).
-fn look_at(eye: [f64; 3], target: [f64; 3]) -> Isometry3<f64> {
-    let eye = Vector3::from(eye);
-    let z = (Vector3::from(target) - eye).normalize();
-    let x = z.cross(&Vector3::z()).normalize();
-    let y = z.cross(&x);
-    let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
-    Isometry3::from_parts(Translation3::from(eye), UnitQuaternion::from_rotation_matrix(&r))
-}
+use pregrasp::geometry::look_at;
 
 fn robot_eye(tick: u64) -> [f64; 3] {
     let s = (tick as f64 * 0.01).min(1.0);

@@ -35,17 +35,7 @@ pub fn intrinsics() -> Intrinsics {
     Intrinsics::from_focal(160, 120, 150.0).unwrap()
 }
 
-/// A camera at `eye` looking at `target` (world z up), as `world_from_camera`.
-pub fn look_at(eye: [f64; 3], target: [f64; 3]) -> Pose {
-    let eye = Vector3::from(eye);
-    let z = (Vector3::from(target) - eye).normalize();
-    let up = Vector3::z();
-    let x = z.cross(&up).normalize(); // image right
-    let y = z.cross(&x); // image down
-    let m = nalgebra::Matrix3::from_columns(&[x, y, z]);
-    let r = UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(m));
-    Pose::from_parts(Translation3::from(eye), r)
-}
+pub use pregrasp::geometry::look_at;
 
 /// Renders the scene from a camera and builds a frame with detections of the visible objects.
 pub fn frame(
