@@ -41,6 +41,9 @@ impl Default for EstimateConfig {
     }
 }
 
+/// Bins per chunk of the sampler's prefix sums.
+const SAMPLE_CHUNK_BINS: usize = 1024;
+
 /// A read-only view of one object's particles.
 pub struct ParticleSet<'a> {
     pub positions_m: &'a [Vector3<f64>],
@@ -164,35 +167,60 @@ impl ParticleSet<'_> {
     /// `n` poses: a particle by weight, a bin from its histogram, a rotation uniform inside the
     /// bin (elevation clamped to [0, pi]), egocentric through the particle's ray.
     pub fn sample_poses(&self, count: usize, rng: &mut impl Rng) -> PoseSamples {
+        use rayon::prelude::*;
         let n = self.n();
         let grid = self.tables.grid;
+        let nb = grid.len();
         let wsum: f64 = self.weights.iter().sum();
-        let mut cdfs: Vec<Option<Vec<f32>>> = vec![None; n];
+        // One parallel pass: every particle's mass per chunk of bins (a prefix over chunks
+        // then narrows each draw to one chunk, scanned alone). A per-particle CDF over all
+        // bins would read the bin-major array with stride `n`, once per particle drawn.
+        let chunk_sums: Vec<Vec<f32>> = self
+            .hist
+            .par_chunks(n * SAMPLE_CHUNK_BINS)
+            .map(|chunk| {
+                let mut acc = vec![0f32; n];
+                for row in chunk.chunks(n) {
+                    for (a, h) in acc.iter_mut().zip(row) {
+                        *a += *h;
+                    }
+                }
+                acc
+            })
+            .collect();
+        let totals: Vec<f32> = (0..n).map(|p| chunk_sums.iter().map(|c| c[p]).sum()).collect();
+        let mut weight_cdf = Vec::with_capacity(n);
+        let mut acc = 0.0;
+        for w in self.weights {
+            acc += *w;
+            weight_cdf.push(acc);
+        }
         let mut poses = Vec::with_capacity(count);
         let s = grid.step_rad();
         for _ in 0..count {
-            let mut u = rng.random::<f64>() * wsum;
-            let mut p = n - 1;
-            for (i, w) in self.weights.iter().enumerate() {
-                if u < *w {
-                    p = i;
-                    break;
+            let u = rng.random::<f64>() * wsum;
+            let p = weight_cdf.partition_point(|c| *c <= u).min(n - 1);
+            let mut target = rng.random::<f32>() * totals[p];
+            let mut b = nb - 1;
+            'chunks: for (c, sums) in chunk_sums.iter().enumerate() {
+                if target >= sums[p] && c + 1 < chunk_sums.len() {
+                    target -= sums[p];
+                    continue;
                 }
-                u -= w;
+                let b0 = c * SAMPLE_CHUNK_BINS;
+                let b1 = (b0 + SAMPLE_CHUNK_BINS).min(nb);
+                for k in b0..b1 {
+                    let h = self.hist[k * n + p];
+                    if target < h {
+                        b = k;
+                        break 'chunks;
+                    }
+                    target -= h;
+                }
+                // rounding left a sliver: the chunk's last bin with mass
+                b = (b0..b1).rev().find(|k| self.hist[k * n + p] > 0.0).unwrap_or(b1 - 1);
+                break;
             }
-            let cdf = cdfs[p].get_or_insert_with(|| {
-                let mut acc = 0.0f32;
-                self.hist
-                    .chunks(n)
-                    .map(|row| {
-                        acc += row[p];
-                        acc
-                    })
-                    .collect()
-            });
-            let total = *cdf.last().unwrap_or(&0.0);
-            let target = rng.random::<f32>() * total;
-            let b = cdf.partition_point(|c| *c < target).min(grid.len() - 1);
             let (e, a, t) = grid.angles_rad(grid.unflat(b));
             let e = (e + (rng.random::<f64>() - 0.5) * s).clamp(0.0, std::f64::consts::PI);
             let a = a + (rng.random::<f64>() - 0.5) * s;
@@ -393,5 +421,54 @@ mod tests {
         let s3 = summarise_rotation(&grid, &h, &pos, Some(&ra), &EstimateConfig { jump_ratio: 1.5, ..cfg });
         assert!(s3.jumped && s3.rotation.angle_to(&rb) < 1e-6);
         assert!(s.entropy > 0.0);
+    }
+
+    #[test]
+    fn samples_follow_particle_weights_and_histograms() {
+        use rand::SeedableRng;
+        let grid = RotationGrid::new(15).unwrap();
+        let tables = GridTables::new(grid);
+        let nb = grid.len();
+        let n = 3;
+        // particle 0: bins 5 (1/4) and nb-1 (3/4, the last chunk's last bin); particle 1:
+        // bin 2000 only; particle 2: weight 0
+        let mut hist = vec![0f32; nb * n];
+        hist[5 * n] = 0.25;
+        hist[(nb - 1) * n] = 0.75;
+        hist[2000 * n + 1] = 1.0;
+        hist[7 * n + 2] = 1.0;
+        let positions = vec![Vector3::new(0.0, 0.0, 1.0), Vector3::new(0.1, 0.0, 1.0), Vector3::new(0.0, 0.2, 1.0)];
+        let set = ParticleSet {
+            positions_m: &positions,
+            sources: &[0, 0, 0],
+            weights: &[0.6, 0.4, 0.0],
+            hist: &hist,
+            tables: &tables,
+            reference_from_hist: Pose::identity(),
+        };
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let s = set.sample_poses(4000, &mut rng);
+        // each sample lies inside (jittered within) one of its particle's bins
+        let mut counts = std::collections::BTreeMap::<(usize, usize), usize>::new();
+        for pose in &s.poses {
+            let p = positions
+                .iter()
+                .position(|q| (q - pose.translation.vector).norm() < 1e-12)
+                .unwrap();
+            let allo = ray_rotation(&pose.translation.vector).inverse() * pose.rotation;
+            let (b, angle) = [5, nb - 1, 2000, 7]
+                .into_iter()
+                .map(|b| (b, grid.rotation(grid.unflat(b)).angle_to(&allo)))
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .unwrap();
+            assert!(angle < 20f64.to_radians(), "sample {angle} rad from its bin");
+            *counts.entry((p, b)).or_default() += 1;
+        }
+        let share = |k: (usize, usize)| *counts.get(&k).unwrap_or(&0) as f64 / 4000.0;
+        assert!((share((0, 5)) - 0.15).abs() < 0.03, "{counts:?}");
+        assert!((share((0, nb - 1)) - 0.45).abs() < 0.03, "{counts:?}");
+        assert!((share((1, 2000)) - 0.4).abs() < 0.03, "{counts:?}");
+        assert_eq!(counts.keys().filter(|k| k.0 == 2).count(), 0, "weightless particle drawn");
+        assert_eq!(counts.values().sum::<usize>(), 4000);
     }
 }
