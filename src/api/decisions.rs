@@ -44,7 +44,9 @@ pub struct DecisionRequest {
 }
 
 /// What the tracker gives a decision: the estimate and samples in the reference frame.
+#[derive(Clone)]
 pub struct Drawn {
+    pub track_id: u64,
     pub object_id: String,
     pub reference_from_object: Pose,
     pub samples: PoseSamples,
@@ -81,6 +83,86 @@ impl GraspObjects {
         *slot = Some(g.clone());
         Ok(g)
     }
+}
+
+/// How long a track stays "watched" after a decision query: while watched, the tracking
+/// worker draws a bank of samples for it right after every step.
+pub const BANK_INTEREST: std::time::Duration = std::time::Duration::from_secs(30);
+
+/// Samples drawn by the tracking worker right after a step (`generation` = its step count).
+pub struct SampleBank {
+    pub generation: u64,
+    pub drawn: Drawn,
+}
+
+/// Decisions without waiting for the tracker: a planner's query reads the bank of samples
+/// the worker drew after the latest step (taking the tracker's lock only for a track nobody
+/// has asked about yet), and identical queries within one step share one answer.
+#[derive(Default)]
+pub struct DecisionCache {
+    banks: Mutex<HashMap<u64, Arc<SampleBank>>>,
+    /// Track -> (last query, most samples asked).
+    interest: Mutex<HashMap<u64, (std::time::Instant, usize)>>,
+    /// Track -> (generation, query key, answer).
+    answers: Mutex<HashMap<u64, (u64, String, serde_json::Value)>>,
+}
+
+impl DecisionCache {
+    fn note_interest(&self, track_id: u64, n: usize) {
+        let mut i = self.interest.lock().unwrap_or_else(|p| p.into_inner());
+        let e = i.entry(track_id).or_insert((std::time::Instant::now(), n));
+        e.0 = std::time::Instant::now();
+        e.1 = e.1.max(n);
+    }
+    /// The latest bank of a track when it holds at least `n` samples.
+    fn bank(&self, track_id: u64, n: usize) -> Option<Arc<SampleBank>> {
+        let b = self.banks.lock().unwrap_or_else(|p| p.into_inner());
+        b.get(&track_id).filter(|b| b.drawn.samples.poses.len() >= n).cloned()
+    }
+    /// Tracks watched now, with the samples to draw for each (forgets the stale ones).
+    pub fn watched(&self) -> Vec<(u64, usize)> {
+        let mut i = self.interest.lock().unwrap_or_else(|p| p.into_inner());
+        i.retain(|_, (t, _)| t.elapsed() < BANK_INTEREST);
+        i.iter().map(|(k, (_, n))| (*k, *n)).collect()
+    }
+    /// Replaces the banks (the worker, after a step); tracks not given lose theirs.
+    pub fn set_banks(&self, banks: Vec<SampleBank>) {
+        let mut b = self.banks.lock().unwrap_or_else(|p| p.into_inner());
+        b.clear();
+        for bank in banks {
+            let id = bank_track(&bank);
+            b.insert(id, Arc::new(bank));
+        }
+    }
+    /// Forgets everything about a track (stopped) or every track (tracker rebuilt).
+    pub fn forget(&self, track_id: Option<u64>) {
+        let mut b = self.banks.lock().unwrap_or_else(|p| p.into_inner());
+        let mut a = self.answers.lock().unwrap_or_else(|p| p.into_inner());
+        match track_id {
+            Some(id) => {
+                b.remove(&id);
+                a.remove(&id);
+            }
+            None => {
+                b.clear();
+                a.clear();
+            }
+        }
+    }
+    fn answer(&self, track_id: u64, generation: u64, key: &str) -> Option<serde_json::Value> {
+        let a = self.answers.lock().unwrap_or_else(|p| p.into_inner());
+        a.get(&track_id)
+            .filter(|(g, k, _)| *g == generation && k == key)
+            .map(|(_, _, v)| v.clone())
+    }
+    fn store_answer(&self, track_id: u64, generation: u64, key: String, v: serde_json::Value) {
+        let mut a = self.answers.lock().unwrap_or_else(|p| p.into_inner());
+        a.insert(track_id, (generation, key, v));
+    }
+}
+
+fn bank_track(bank: &SampleBank) -> u64 {
+    bank.drawn.track_id
 }
 
 pub fn router() -> OpenApiRouter<AppState> {
@@ -127,7 +209,28 @@ pub fn decide_blocking(state: &AppState, track_id: u64, req: &DecisionRequest) -
         .as_ref()
         .map(|g| g.object_from_gripper.to_pose("grasp.object_from_gripper"))
         .transpose()?;
-    let drawn = super::worker::draw_samples(state, track_id, n)?;
+    if !state.tracking.board().views.contains_key(&track_id) {
+        return Err(ApiError::not_found("track", track_id.to_string()));
+    }
+    state.decision_cache.note_interest(track_id, n);
+    let bank = state.decision_cache.bank(track_id, n);
+    // identical queries within one step share one answer (the samples are the same)
+    let key = serde_json::to_string(&(req, &gripper)).unwrap_or_default();
+    if let Some(b) = &bank
+        && let Some(v) = state.decision_cache.answer(track_id, b.generation, &key)
+    {
+        state.metrics.decisions.fetch_add(1, Ordering::Relaxed);
+        return Ok(v);
+    }
+    let drawn = match &bank {
+        Some(b) => {
+            let mut d = b.drawn.clone();
+            d.samples.poses.truncate(n);
+            d.samples.effective_sample_size = d.samples.effective_sample_size.min(n as f64);
+            d
+        }
+        None => super::worker::draw_samples(state, track_id, n)?,
+    };
     let object = state.grasp_objects.get_or_build(state, &drawn.object_id)?;
     let support_plane = plane_world.map(|p| {
         SupportPlane {
@@ -145,6 +248,9 @@ pub fn decide_blocking(state: &AppState, track_id: u64, req: &DecisionRequest) -
     let d = grasp::decide(&object, &gripper, &drawn.reference_from_object, &drawn.samples, &query)
         .map_err(|e| ApiError::Invalid(format!("decision: {e}")))?;
     let view = decision_view(&d, &drawn.world_from_reference);
+    if let Some(b) = &bank {
+        state.decision_cache.store_answer(track_id, b.generation, key, view.clone());
+    }
     state.metrics.decisions.fetch_add(1, Ordering::Relaxed);
     state.tracking.set_decision(track_id, view.clone());
     state.publish(ServerEvent::Decision {

@@ -155,6 +155,7 @@ pub struct Shared {
     pub metrics: Metrics,
     pub tracking: tracks::Tracking,
     pub grasp_objects: decisions::GraspObjects,
+    pub decision_cache: decisions::DecisionCache,
     pub codebooks: codebooks::Codebooks,
     /// Decisions running at once (one per core).
     pub decision_slots: Arc<tokio::sync::Semaphore>,
@@ -205,6 +206,7 @@ impl AppState {
             metrics: Metrics::default(),
             tracking,
             grasp_objects: decisions::GraspObjects::default(),
+            decision_cache: decisions::DecisionCache::default(),
             codebooks: codebooks::Codebooks::default(),
             decision_slots: Arc::new(tokio::sync::Semaphore::new(
                 std::thread::available_parallelism().map_or(2, |n| n.get()),

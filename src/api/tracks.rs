@@ -287,6 +287,7 @@ async fn stop_track(State(state): State<AppState>, Path(id): Path<String>) -> Re
     b.history.remove(&id);
     b.stopped.push(id);
     drop(b);
+    state.decision_cache.forget(Some(id));
     state.store.delete(super::store::Table::Tracks, &id.to_string())?;
     Ok(super::error::Deleted)
 }

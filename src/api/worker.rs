@@ -167,6 +167,7 @@ pub fn draw_samples(state: &AppState, track_id: u64, n: usize) -> Result<Drawn, 
         .sample_poses(track_id, n, &mut engine.rng)
         .ok_or_else(|| ApiError::NotReady(format!("track {track_id} has no particles yet")))?;
     Ok(Drawn {
+        track_id,
         object_id: track.object,
         reference_from_object: estimate.reference_from_object,
         samples,
@@ -305,6 +306,7 @@ fn step(state: &AppState, set: &FusionSet) {
         .collect();
     if guard.as_ref().is_none_or(|e| e.cameras != cameras_now) {
         *guard = Engine::new(state);
+        state.decision_cache.forget(None);
     }
     let Some(engine) = guard.as_mut() else { return };
     engine.sync_models(state);
@@ -360,6 +362,7 @@ fn step(state: &AppState, set: &FusionSet) {
     let newest_received = set.frames.iter().map(|f| f.received).max();
     let latency_ms = newest_received.map(|r| r.elapsed().as_secs_f64() * 1e3);
     let views = views(state, engine, latency_ms, &stopped);
+    refill_sample_banks(state, engine, &stopped);
     {
         let mut ring = state
             .metrics
@@ -377,6 +380,45 @@ fn step(state: &AppState, set: &FusionSet) {
         state.tracking.publish(v);
         state.publish(ServerEvent::Track(json));
     }
+}
+
+/// Draws the sample banks of the tracks planners asked about lately (see
+/// [`super::decisions::DecisionCache`]): decisions then read them without the tracker's lock.
+fn refill_sample_banks(state: &AppState, engine: &mut Engine, stopped: &HashSet<u64>) {
+    let generation = state.metrics.steps.load(Ordering::Relaxed);
+    let world_from_reference = engine.tracker.world_from_reference();
+    let mut banks = Vec::new();
+    for (track_id, n) in state.decision_cache.watched() {
+        if stopped.contains(&track_id) {
+            continue;
+        }
+        let Some(object_id) = engine
+            .tracker
+            .tracks()
+            .iter()
+            .find(|t| t.id == track_id)
+            .map(|t| t.object.clone())
+        else {
+            continue;
+        };
+        let (Some(estimate), Some(samples)) = (
+            engine.tracker.estimate(track_id),
+            engine.tracker.sample_poses(track_id, n, &mut engine.rng),
+        ) else {
+            continue;
+        };
+        banks.push(super::decisions::SampleBank {
+            generation,
+            drawn: Drawn {
+                track_id,
+                object_id,
+                reference_from_object: estimate.reference_from_object,
+                samples,
+                world_from_reference,
+            },
+        });
+    }
+    state.decision_cache.set_banks(banks);
 }
 
 fn run_worker(state: AppState, stop: Arc<AtomicBool>) {

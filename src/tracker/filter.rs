@@ -20,6 +20,9 @@
 //! detection of its model restarts it. An object inside no camera's image keeps its prior
 //! (its uncertainty grows with the motion noise).
 
+mod snapshot;
+pub use snapshot::{SNAPSHOT_VERSION, TrackPrior, TrackSnapshot, TrackerSnapshot};
+
 use crate::geometry::{Pose, PoseSamples};
 use crate::mesh::Mesh;
 use crate::tracker::bins::{GridTables, blur, fast_exp, gaussian_kernel};
@@ -785,6 +788,21 @@ impl Tracker {
 
         // estimates
         let t0 = Instant::now();
+        self.refresh_estimate(ti, pending_scale.as_deref());
+        report.timings.estimates_s += t0.elapsed().as_secs_f64();
+
+        // resampling within components
+        if had_evidence {
+            let t0 = Instant::now();
+            self.resample(ti, pending_scale.as_deref());
+            report.timings.resampling_s += t0.elapsed().as_secs_f64();
+        }
+    }
+
+    /// Recomputes a track's estimate from its particles (`scale`: each histogram's pending
+    /// normalisation, see `update_track`).
+    fn refresh_estimate(&mut self, ti: usize, pending_scale: Option<&[f32]>) {
+        let tables = self.models[self.states[ti].model].tables.clone();
         let status = self.tracks[ti].status;
         let est = {
             let s = &self.states[ti];
@@ -795,7 +813,7 @@ impl Tracker {
                 .inverse_transform_point(&Point3::from(mean))
                 .coords;
             let (tcov, tstd) = set.translation_covariance();
-            let mixture = match &pending_scale {
+            let mixture = match pending_scale {
                 Some(scale) => {
                     let w: Vec<f64> = s.weights.iter().zip(scale).map(|(w, k)| w * *k as f64).collect();
                     set.mixture_with(&w)
@@ -844,14 +862,6 @@ impl Tracker {
         };
         self.states[ti].rotation = Some(est.1);
         self.states[ti].estimate = Some(est.0);
-        report.timings.estimates_s += t0.elapsed().as_secs_f64();
-
-        // resampling within components
-        if had_evidence {
-            let t0 = Instant::now();
-            self.resample(ti, pending_scale.as_deref());
-            report.timings.resampling_s += t0.elapsed().as_secs_f64();
-        }
     }
 
     /// Systematic resampling inside each source camera's component: the component keeps its

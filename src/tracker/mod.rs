@@ -54,7 +54,7 @@ use serde::{Deserialize, Serialize};
 
 pub use codebook::{Codebook, CodebookConfig};
 pub use encoder::{Encoder, LinearDenoisingEncoder};
-pub use filter::{Tracker, TrackerConfig};
+pub use filter::{TrackPrior, TrackSnapshot, Tracker, TrackerConfig, TrackerSnapshot};
 
 /// Errors of the tracker module.
 #[derive(Debug, thiserror::Error)]
