@@ -29,8 +29,8 @@ fn a_prior_starts_a_track_with_its_pose_and_spread_then_evidence_takes_over() {
     // The prior: 4 cm off the truth, rotation 30 degrees off with a 20-degree spread.
     let mut prior_pose = truth;
     prior_pose.translation.vector += nalgebra::Vector3::new(0.04, 0.0, 0.0);
-    prior_pose.rotation = nalgebra::UnitQuaternion::from_axis_angle(&nalgebra::Vector3::z_axis(), 30f64.to_radians())
-        * truth.rotation;
+    prior_pose.rotation =
+        nalgebra::UnitQuaternion::from_axis_angle(&nalgebra::Vector3::z_axis(), 30f64.to_radians()) * truth.rotation;
     let prior = TrackPrior {
         reference_from_object: prior_pose,
         translation_std_m: 0.02,
@@ -50,11 +50,24 @@ fn a_prior_starts_a_track_with_its_pose_and_spread_then_evidence_takes_over() {
     // The estimate is the prior: mean within 1.5 std / sqrt(n) of the given position,
     // spread ~ sqrt(3) x 2 cm, rotation at the prior's (within a bin).
     assert!(translation_error(&e.reference_from_object, &prior_pose) < 0.01);
-    assert!((e.translation_std_m - 0.02 * 3f64.sqrt()).abs() < 0.01, "{}", e.translation_std_m);
-    assert!(e.reference_from_object.rotation.angle_to(&prior_pose.rotation).to_degrees() < 10.0);
+    assert!(
+        (e.translation_std_m - 0.02 * 3f64.sqrt()).abs() < 0.01,
+        "{}",
+        e.translation_std_m
+    );
+    assert!(
+        e.reference_from_object
+            .rotation
+            .angle_to(&prior_pose.rotation)
+            .to_degrees()
+            < 10.0
+    );
     // The prior's rotation is more likely than one 90 degrees away.
     let far = nalgebra::UnitQuaternion::from_axis_angle(&nalgebra::Vector3::x_axis(), 1.57) * prior_pose.rotation;
-    assert!(tracker.orientation_loglik(id, &prior_pose.rotation).unwrap() > tracker.orientation_loglik(id, &far).unwrap() + 3.0);
+    assert!(
+        tracker.orientation_loglik(id, &prior_pose.rotation).unwrap()
+            > tracker.orientation_loglik(id, &far).unwrap() + 3.0
+    );
 
     // Frames without detections: the prior's track is the one that gets the evidence.
     for step in 0..6 {
@@ -87,7 +100,11 @@ fn a_snapshot_restores_tracks_into_a_fresh_tracker_even_on_another_grid() {
     // compact: far below the full state (bins x particles floats)
     let bytes = serde_json::to_vec(&snap).unwrap();
     let full = cb.grid.len() * tracker.particles(id).unwrap().len() * 4;
-    assert!(bytes.len() * 20 < full, "{} bytes vs a full state of {full}", bytes.len());
+    assert!(
+        bytes.len() * 20 < full,
+        "{} bytes vs a full state of {full}",
+        bytes.len()
+    );
     let snap: TrackerSnapshot = serde_json::from_slice(&bytes).unwrap();
 
     // Same grid: the same estimate (up to resampling: the step's estimate is taken before
@@ -99,11 +116,19 @@ fn a_snapshot_restores_tracks_into_a_fresh_tracker_even_on_another_grid() {
     fresh.restore_track(&snap.tracks[0]).unwrap();
     let after = fresh.estimate(id).unwrap();
     let (a, b) = (&fresh.tracks()[0], &tracker.tracks()[0]);
-    assert_eq!((a.id, &a.object, a.status, a.stamp_ns), (b.id, &b.object, b.status, b.stamp_ns));
+    assert_eq!(
+        (a.id, &a.object, a.status, a.stamp_ns),
+        (b.id, &b.object, b.status, b.stamp_ns)
+    );
     let moved_m = translation_error(&after.reference_from_object, &before.reference_from_object);
     assert!(moved_m < 0.003, "{moved_m}");
     assert!(
-        after.reference_from_object.rotation.angle_to(&before.reference_from_object.rotation).to_degrees() < 3.0,
+        after
+            .reference_from_object
+            .rotation
+            .angle_to(&before.reference_from_object.rotation)
+            .to_degrees()
+            < 3.0,
         "rotation moved on restore"
     );
     assert!((after.rotation_entropy - before.rotation_entropy).abs() < 0.2);
@@ -129,7 +154,12 @@ fn a_snapshot_restores_tracks_into_a_fresh_tracker_even_on_another_grid() {
     other.restore_track(&snap.tracks[0]).unwrap();
     let moved = other.estimate(id).unwrap();
     assert!(
-        moved.reference_from_object.rotation.angle_to(&before.reference_from_object.rotation).to_degrees() < 12.0
+        moved
+            .reference_from_object
+            .rotation
+            .angle_to(&before.reference_from_object.rotation)
+            .to_degrees()
+            < 12.0
     );
 
     // Broken snapshots are refused and change nothing.

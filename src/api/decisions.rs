@@ -220,10 +220,13 @@ pub fn decide_blocking(state: &AppState, track_id: u64, req: &DecisionRequest) -
         && let Some(v) = state.decision_cache.answer(track_id, b.generation, &key)
     {
         state.metrics.decisions.fetch_add(1, Ordering::Relaxed);
+        state.metrics.decisions_from_bank.fetch_add(1, Ordering::Relaxed);
+        state.metrics.decisions_shared.fetch_add(1, Ordering::Relaxed);
         return Ok(v);
     }
     let drawn = match &bank {
         Some(b) => {
+            state.metrics.decisions_from_bank.fetch_add(1, Ordering::Relaxed);
             let mut d = b.drawn.clone();
             d.samples.poses.truncate(n);
             d.samples.effective_sample_size = d.samples.effective_sample_size.min(n as f64);
@@ -249,7 +252,9 @@ pub fn decide_blocking(state: &AppState, track_id: u64, req: &DecisionRequest) -
         .map_err(|e| ApiError::Invalid(format!("decision: {e}")))?;
     let view = decision_view(&d, &drawn.world_from_reference);
     if let Some(b) = &bank {
-        state.decision_cache.store_answer(track_id, b.generation, key, view.clone());
+        state
+            .decision_cache
+            .store_answer(track_id, b.generation, key, view.clone());
     }
     state.metrics.decisions.fetch_add(1, Ordering::Relaxed);
     state.tracking.set_decision(track_id, view.clone());

@@ -195,6 +195,15 @@ impl IntoResponse for Deleted {
     }
 }
 
+/// A new resource (201 with its JSON).
+pub struct Created<T>(pub T);
+
+impl<T: Serialize> IntoResponse for Created<T> {
+    fn into_response(self) -> Response {
+        (StatusCode::CREATED, axum::Json(self.0)).into_response()
+    }
+}
+
 /// The answer to a request that was taken for later processing (202 with a JSON body).
 pub struct Accepted<T>(pub T);
 

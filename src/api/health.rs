@@ -91,6 +91,16 @@ async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
         m.decisions.load(Ordering::Relaxed),
     );
     counter(
+        "pregrasp_decisions_from_bank_total",
+        "Decisions that read the samples drawn after the latest step",
+        m.decisions_from_bank.load(Ordering::Relaxed),
+    );
+    counter(
+        "pregrasp_decisions_shared_total",
+        "Decisions answered by an identical query of the same step",
+        m.decisions_shared.load(Ordering::Relaxed),
+    );
+    counter(
         "pregrasp_requests_rejected_total",
         "Requests answered with a 4xx",
         m.requests_rejected.load(Ordering::Relaxed),
@@ -110,6 +120,11 @@ async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
         state.ingest().pending() as f64,
     );
     gauge("pregrasp_tracks", "Tracks", state.tracking.track_count() as f64);
+    gauge(
+        "pregrasp_tracker_snapshot_bytes",
+        "Size of the last tracker snapshot written to the store",
+        m.tracker_snapshot_bytes.load(Ordering::Relaxed) as f64,
+    );
     gauge(
         "pregrasp_step_rate_hz",
         "Achieved tracker steps per second (last second)",

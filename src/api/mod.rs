@@ -96,6 +96,12 @@ pub struct Metrics {
     pub step_latency_us_sum: AtomicU64,
     pub last_step_latency_us: AtomicU64,
     pub decisions: AtomicU64,
+    /// Decisions that read the worker's sample bank (no wait for the tracker).
+    pub decisions_from_bank: AtomicU64,
+    /// Decisions answered from an identical query in the same step.
+    pub decisions_shared: AtomicU64,
+    /// Size of the last tracker snapshot written to the store.
+    pub tracker_snapshot_bytes: AtomicU64,
     pub requests_rejected: AtomicU64,
     /// Ingest-to-estimate latencies of the most recent frames, microseconds.
     pub ingest_to_estimate_us: Mutex<LatencyRing>,
@@ -161,6 +167,8 @@ pub struct Shared {
     pub decision_slots: Arc<tokio::sync::Semaphore>,
     /// The tracker (built when the first frame arrives; rebuilt when the cameras change).
     pub engine: Mutex<Option<worker::Engine>>,
+    /// The tracker snapshot read from the store at start, until the tracker takes it.
+    pub restored: Mutex<Option<crate::tracker::TrackerSnapshot>>,
     /// The support plane (world frame) when one is known (demo, replay of a rig with one).
     pub support_plane: Mutex<Option<scene::PlaneDto>>,
     /// Ground truth for display only (`world_from_object` and its stamp per object id).
@@ -196,6 +204,7 @@ impl AppState {
         let (events, _) = broadcast::channel(256);
         error::BODY_LIMIT_BYTES.store(config.max_body_bytes, Ordering::Relaxed);
         let ingest = ingest::IngestBuffer::new(config.window_ns, config.max_pending_per_camera);
+        let restored = tracks::load_tracker_snapshot(&store);
         Ok(Self(Arc::new(Shared {
             config,
             store,
@@ -212,6 +221,7 @@ impl AppState {
                 std::thread::available_parallelism().map_or(2, |n| n.get()),
             )),
             engine: Mutex::new(None),
+            restored: Mutex::new(restored),
             support_plane: Mutex::new(None),
             truth: Mutex::new(BTreeMap::new()),
             stats: Mutex::new(events::Stats::default()),

@@ -17,15 +17,21 @@ pub enum Table {
     Meshes,
     Grippers,
     Tracks,
+    /// The tracker's compact snapshot (one record, key [`TRACKER_KEY`]).
+    TrackerState,
 }
 
+/// Key of the tracker's snapshot in [`Table::TrackerState`].
+pub const TRACKER_KEY: &str = "tracker";
+
 impl Table {
-    const ALL: [Table; 5] = [
+    const ALL: [Table; 6] = [
         Table::Cameras,
         Table::Objects,
         Table::Meshes,
         Table::Grippers,
         Table::Tracks,
+        Table::TrackerState,
     ];
 
     fn def(self) -> TableDefinition<'static, &'static str, &'static [u8]> {
@@ -35,6 +41,7 @@ impl Table {
             Table::Meshes => "meshes",
             Table::Grippers => "grippers",
             Table::Tracks => "tracks",
+            Table::TrackerState => "tracker_state",
         })
     }
 }

@@ -156,6 +156,29 @@ pub(super) fn load(store: &super::store::Store, tracking: &Tracking) -> anyhow::
     Ok(())
 }
 
+/// The tracker snapshot saved by the last run, if any (an unreadable one is logged and
+/// ignored: the tracks then restart from their next detections).
+pub(super) fn load_tracker_snapshot(store: &super::store::Store) -> Option<crate::tracker::TrackerSnapshot> {
+    let bytes = match store.get_bytes(super::store::Table::TrackerState, super::store::TRACKER_KEY) {
+        Ok(b) => b?,
+        Err(e) => {
+            tracing::warn!("reading the tracker snapshot: {e}");
+            return None;
+        }
+    };
+    match serde_json::from_slice::<crate::tracker::TrackerSnapshot>(&bytes) {
+        Ok(s) if s.version == crate::tracker::filter::SNAPSHOT_VERSION => Some(s),
+        Ok(s) => {
+            tracing::warn!("tracker snapshot of version {} ignored", s.version);
+            None
+        }
+        Err(e) => {
+            tracing::warn!("tracker snapshot unreadable, ignored: {e}");
+            None
+        }
+    }
+}
+
 /// Saves every track's current view in one transaction (called periodically by the worker).
 pub fn save_snapshots(state: &AppState) -> Result<(), ApiError> {
     let records: Vec<(String, Vec<u8>)> = state
@@ -175,9 +198,71 @@ pub fn save_snapshots(state: &AppState) -> Result<(), ApiError> {
     Ok(())
 }
 
+/// Start tracking an object from what the caller already believes (a map, an earlier visit):
+/// give the mean pose in the world frame or in the reference (robot camera) frame.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct StartTrackRequest {
+    pub object_id: String,
+    pub world_from_object: Option<PoseDto>,
+    pub reference_from_object: Option<PoseDto>,
+    /// Standard deviation of the position per axis (default 0.05, at most 2).
+    pub translation_std_m: Option<f64>,
+    /// Standard deviation of the rotation angle (degrees, at most 180); absent: any rotation.
+    pub rotation_std_deg: Option<f64>,
+}
+
+#[utoipa::path(post, path = "/tracks", tag = "tracks", request_body = StartTrackRequest,
+    responses((status = 201, body = TrackView), (status = 404, body = super::error::Problem),
+        (status = 409, description = "No cameras registered", body = super::error::Problem),
+        (status = 422, body = super::error::Problem),
+        (status = 503, description = "The object's codebook is still building", body = super::error::Problem)))]
+async fn start_track(
+    State(state): State<AppState>,
+    super::types::ApiJson(req): super::types::ApiJson<StartTrackRequest>,
+) -> Result<super::error::Created<TrackView>, ApiError> {
+    if !state.registry().objects.contains_key(&req.object_id) {
+        return Err(ApiError::not_found("object", req.object_id));
+    }
+    let world = req
+        .world_from_object
+        .map(|p| p.to_pose("world_from_object"))
+        .transpose()?;
+    let reference = req
+        .reference_from_object
+        .map(|p| p.to_pose("reference_from_object"))
+        .transpose()?;
+    if world.is_some() == reference.is_some() {
+        return Err(ApiError::Invalid(
+            "give exactly one of world_from_object and reference_from_object".into(),
+        ));
+    }
+    let std_m = req.translation_std_m.unwrap_or(0.05);
+    if !(std_m > 0.0 && std_m <= 2.0) {
+        return Err(ApiError::Invalid(format!(
+            "translation_std_m must be in (0, 2], got {std_m}"
+        )));
+    }
+    let rot = match req.rotation_std_deg {
+        Some(d) if d > 0.0 && d <= 180.0 => Some(d.to_radians()),
+        Some(d) => {
+            return Err(ApiError::Invalid(format!(
+                "rotation_std_deg must be in (0, 180], got {d}"
+            )));
+        }
+        None => None,
+    };
+    let object = req.object_id.clone();
+    let view =
+        tokio::task::spawn_blocking(move || super::worker::start_track(&state, &object, world, reference, std_m, rot))
+            .await
+            .map_err(ApiError::internal)??;
+    Ok(super::error::Created(view))
+}
+
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
-        .routes(routes!(list_tracks))
+        .routes(routes!(list_tracks, start_track))
         .routes(routes!(get_track, stop_track))
         .routes(routes!(track_history))
         .routes(routes!(track_samples))

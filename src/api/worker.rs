@@ -49,6 +49,7 @@ impl Background {
         if let Err(e) = super::tracks::save_snapshots(&self.state) {
             tracing::warn!("saving track snapshots: {e}");
         }
+        save_tracker_snapshot(&self.state);
     }
 }
 
@@ -75,6 +76,8 @@ pub fn start_background(state: &AppState) -> Background {
 
 /// How often track snapshots are written to the store.
 pub const SNAPSHOT_PERIOD: Duration = Duration::from_secs(2);
+/// How often the tracker's own (larger) snapshot is written to the store.
+pub const TRACKER_SNAPSHOT_PERIOD: Duration = Duration::from_secs(5);
 /// Most particles per track in a view (display only).
 pub const VIEW_MAX_PARTICLES: usize = 300;
 /// Samples per track in a view.
@@ -91,10 +94,12 @@ pub struct Engine {
     /// frame of a stationary camera is fused at the robot's latest pose).
     odometry_stamp_ns: Option<i64>,
     rng: rand_chacha::ChaCha8Rng,
+    /// Tracks of the previous run's snapshot whose models are not in the tracker yet.
+    pending: Vec<crate::tracker::TrackSnapshot>,
 }
 
 impl Engine {
-    fn new(state: &AppState) -> Option<Self> {
+    pub(super) fn new(state: &AppState) -> Option<Self> {
         let reg = state.registry();
         let reference = super::cameras::reference_camera(&reg)?;
         let mounts: BTreeMap<String, CameraMount> = reg
@@ -112,17 +117,35 @@ impl Engine {
                 (c.id.clone(), m)
             })
             .collect();
+        let mut tracker = Tracker::new(state.config.tracker.clone(), mounts, reference);
+        // The previous run's tracks come back as their models become ready (sync_models);
+        // only tracks still listed (not stopped) are restored.
+        let mut pending = Vec::new();
+        if let Some(snap) = state.restored.lock().unwrap_or_else(|p| p.into_inner()).take() {
+            match tracker.restore_frame(&snap) {
+                Ok(()) => {
+                    let listed = state.tracking.board();
+                    pending = snap
+                        .tracks
+                        .into_iter()
+                        .filter(|t| listed.views.contains_key(&t.track.id))
+                        .collect();
+                }
+                Err(e) => tracing::warn!("tracker snapshot not restored: {e}"),
+            }
+        }
         Some(Self {
-            tracker: Tracker::new(state.config.tracker.clone(), mounts, reference),
+            tracker,
             cameras: reg.cameras.iter().map(|(k, c)| (k.clone(), c.mount)).collect(),
             models: BTreeMap::new(),
             odometry_stamp_ns: None,
             rng: rand_chacha::ChaCha8Rng::seed_from_u64(state.config.tracker.seed ^ 0x5eed),
+            pending,
         })
     }
 
     /// Adds the objects whose codebooks became ready (or changed).
-    fn sync_models(&mut self, state: &AppState) {
+    pub(super) fn sync_models(&mut self, state: &AppState) {
         let objects: Vec<(String, String, std::sync::Arc<crate::mesh::Mesh>)> = state
             .registry()
             .objects
@@ -138,9 +161,71 @@ impl Engine {
                 continue;
             }
             self.tracker.add_object_model(&id, (*mesh).clone(), cb);
+            let (restore, keep): (Vec<_>, Vec<_>) = std::mem::take(&mut self.pending)
+                .into_iter()
+                .partition(|t| t.track.object == id);
+            self.pending = keep;
+            for t in restore {
+                match self.tracker.restore_track(&t) {
+                    Ok(()) => tracing::info!("restored track {} of {id}", t.track.id),
+                    Err(e) => tracing::warn!("track {} not restored: {e}", t.track.id),
+                }
+            }
             self.models.insert(id, key);
         }
     }
+}
+
+/// Starts a track from a caller's prior (`world_from_object` in the world frame); returns its
+/// first view.
+pub fn start_track(
+    state: &AppState,
+    object_id: &str,
+    world_from_object: Option<Pose>,
+    reference_from_object: Option<Pose>,
+    translation_std_m: f64,
+    rotation_std_rad: Option<f64>,
+) -> Result<TrackView, ApiError> {
+    let mut guard = state.engine.lock().unwrap_or_else(|p| p.into_inner());
+    if guard.is_none() {
+        *guard = Engine::new(state);
+    }
+    let engine = guard
+        .as_mut()
+        .ok_or_else(|| ApiError::Conflict("no cameras are registered: register the cameras first".into()))?;
+    engine.sync_models(state);
+    if !engine.models.contains_key(object_id) {
+        return Err(ApiError::NotReady(format!(
+            "object '{object_id}' has no codebook yet (see its codebook status)"
+        )));
+    }
+    let reference_from_object = match (world_from_object, reference_from_object) {
+        (Some(w), _) => engine.tracker.world_from_reference().inverse() * w,
+        (None, Some(r)) => r,
+        (None, None) => {
+            return Err(ApiError::Invalid(
+                "give world_from_object or reference_from_object".into(),
+            ));
+        }
+    };
+    let prior = crate::tracker::TrackPrior {
+        reference_from_object,
+        translation_std_m,
+        rotation_std_rad,
+    };
+    let id = engine
+        .tracker
+        .start_track(object_id, &prior)
+        .map_err(|e| ApiError::Invalid(format!("prior: {e}")))?;
+    let view = views(state, engine, None, &HashSet::new())
+        .into_iter()
+        .find(|v| v.id == id)
+        .ok_or_else(|| ApiError::Internal(format!("track {id} has no view")))?;
+    drop(guard);
+    let json = serde_json::to_value(&view).unwrap_or_default();
+    state.tracking.publish(view.clone());
+    state.publish(ServerEvent::Track(json));
+    Ok(view)
 }
 
 /// Draws `n` poses from a track's distribution (reference frame) for a decision.
@@ -210,7 +295,12 @@ fn status_dto(s: TrackStatus) -> TrackStatusDto {
 }
 
 /// Builds the views of every (not stopped) track after a step.
-fn views(state: &AppState, engine: &mut Engine, latency_ms: Option<f64>, stopped: &HashSet<u64>) -> Vec<TrackView> {
+pub(super) fn views(
+    state: &AppState,
+    engine: &mut Engine,
+    latency_ms: Option<f64>,
+    stopped: &HashSet<u64>,
+) -> Vec<TrackView> {
     let world_from_reference = engine.tracker.world_from_reference();
     let names: BTreeMap<String, String> = state
         .registry()
@@ -305,11 +395,21 @@ fn step(state: &AppState, set: &FusionSet) {
         .map(|(k, c)| (k.clone(), c.mount))
         .collect();
     if guard.as_ref().is_none_or(|e| e.cameras != cameras_now) {
+        // the tracks carry over to the new camera set (those of a removed camera do not)
+        if let Some(old) = guard.as_ref() {
+            let mut snap = old.tracker.snapshot();
+            snap.tracks.extend(old.pending.iter().cloned());
+            *state.restored.lock().unwrap_or_else(|p| p.into_inner()) = Some(snap);
+        }
         *guard = Engine::new(state);
         state.decision_cache.forget(None);
     }
     let Some(engine) = guard.as_mut() else { return };
     engine.sync_models(state);
+    for id in state.tracking.board().stopped.iter() {
+        engine.tracker.remove_track(*id);
+        engine.pending.retain(|t| t.track.id != *id);
+    }
     let mut frames: Vec<CameraFrame> = set.frames.iter().filter_map(|f| to_camera_frame(state, f)).collect();
     // Detections start tracks: drop those of objects that already have enough live tracks.
     let mut live: BTreeMap<&str, usize> = BTreeMap::new();
@@ -421,8 +521,38 @@ fn refill_sample_banks(state: &AppState, engine: &mut Engine, stopped: &HashSet<
     state.decision_cache.set_banks(banks);
 }
 
+/// Writes the tracker's compact snapshot (with the restored tracks still waiting for their
+/// models, so that a restart before the codebooks are ready loses nothing).
+pub fn save_tracker_snapshot(state: &AppState) {
+    let snap = {
+        let guard = state.engine.lock().unwrap_or_else(|p| p.into_inner());
+        let Some(engine) = guard.as_ref() else { return };
+        let mut snap = engine.tracker.snapshot();
+        snap.tracks.extend(engine.pending.iter().cloned());
+        snap
+    };
+    let bytes = match serde_json::to_vec(&snap) {
+        Ok(b) => b,
+        Err(e) => {
+            tracing::warn!("tracker snapshot: {e}");
+            return;
+        }
+    };
+    state
+        .metrics
+        .tracker_snapshot_bytes
+        .store(bytes.len() as u64, Ordering::Relaxed);
+    if let Err(e) = state
+        .store
+        .put_bytes(super::store::Table::TrackerState, super::store::TRACKER_KEY, &bytes)
+    {
+        tracing::warn!("saving the tracker snapshot: {e}");
+    }
+}
+
 fn run_worker(state: AppState, stop: Arc<AtomicBool>) {
     let mut last_snapshot = Instant::now();
+    let mut last_tracker_snapshot = Instant::now();
     while !stop.load(Ordering::Relaxed) {
         let set = {
             let mut ingest = state.ingest();
@@ -457,6 +587,10 @@ fn run_worker(state: AppState, stop: Arc<AtomicBool>) {
             if let Err(e) = super::tracks::save_snapshots(&state) {
                 tracing::warn!("saving track snapshots: {e}");
             }
+        }
+        if last_tracker_snapshot.elapsed() >= TRACKER_SNAPSHOT_PERIOD {
+            last_tracker_snapshot = Instant::now();
+            save_tracker_snapshot(&state);
         }
     }
 }

@@ -437,7 +437,11 @@ mod tests {
         hist[(nb - 1) * n] = 0.75;
         hist[2000 * n + 1] = 1.0;
         hist[7 * n + 2] = 1.0;
-        let positions = vec![Vector3::new(0.0, 0.0, 1.0), Vector3::new(0.1, 0.0, 1.0), Vector3::new(0.0, 0.2, 1.0)];
+        let positions = vec![
+            Vector3::new(0.0, 0.0, 1.0),
+            Vector3::new(0.1, 0.0, 1.0),
+            Vector3::new(0.0, 0.2, 1.0),
+        ];
         let set = ParticleSet {
             positions_m: &positions,
             sources: &[0, 0, 0],
@@ -468,7 +472,11 @@ mod tests {
         assert!((share((0, 5)) - 0.15).abs() < 0.03, "{counts:?}");
         assert!((share((0, nb - 1)) - 0.45).abs() < 0.03, "{counts:?}");
         assert!((share((1, 2000)) - 0.4).abs() < 0.03, "{counts:?}");
-        assert_eq!(counts.keys().filter(|k| k.0 == 2).count(), 0, "weightless particle drawn");
+        assert_eq!(
+            counts.keys().filter(|k| k.0 == 2).count(),
+            0,
+            "weightless particle drawn"
+        );
         assert_eq!(counts.values().sum::<usize>(), 4000);
     }
 }

@@ -238,3 +238,20 @@ async fn bad_requests_get_problem_documents_and_change_nothing() {
     let metrics = app.metrics_text().await;
     assert!(metrics.contains("pregrasp_frames_stale_total 2"), "{metrics}");
 }
+
+#[tokio::test]
+async fn a_prior_track_needs_cameras_and_a_known_object() {
+    let app = spawn_app().await;
+    let prior = json!({"object_id": "can", "world_from_object": {"rotation_xyzw": [0.0, 0.0, 0.0, 1.0], "translation_m": [0.0, 0.0, 0.5]}});
+    assert_problem(app.post_json("/tracks", &prior).await, 404).await;
+    let ply = pregrasp::mesh::builtin("can").expect("can").to_ply_bytes();
+    assert_eq!(
+        app.put_bytes("/objects/can", "application/octet-stream", ply)
+            .await
+            .status(),
+        200
+    );
+    let p = assert_problem(app.post_json("/tracks", &prior).await, 409).await;
+    assert!(p["detail"].as_str().unwrap_or_default().contains("camera"), "{p}");
+    assert!(app.get_json("/tracks").await.as_array().expect("tracks").is_empty());
+}

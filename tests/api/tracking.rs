@@ -135,12 +135,6 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
     let ext2 = look_at([0.3, -0.9, 0.7], [0.0, 0.0, 0.08]);
     // The robot: base on the floor driving towards the table along +x; camera 1.2 m up.
     let base_from_camera = look_at([0.0, 0.0, 1.2], [1.0, 0.0, 0.7]);
-    let world_from_base = |i: i64| {
-        Pose::from_parts(
-            Translation3::new(-1.4 + 0.03 * i as f64 * MOVE, 0.1, -0.75),
-            UnitQuaternion::identity(),
-        )
-    };
 
     assert_eq!(
         app.put_json(
@@ -186,31 +180,15 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
     let truth = json!({"stamp_ns": 0, "objects": [{"object": "box", "world_from_object": pose_json(&scene.world_from_object)}]});
     assert_eq!(app.post_json("/truth", &truth).await.status(), 202);
 
-    let period_ns = 100_000_000i64;
+    let rig = Rig {
+        ext1,
+        ext2,
+        base_from_camera,
+    };
     for i in 0..10i64 {
-        let t = 1_000_000_000 + i * period_ns;
-        let odo = json!({
-            "stamp_ns": t,
-            "odom_from_base": {"pose": pose_json(&world_from_base(i))},
-            "world_from_odom": pose_json(&Pose::identity()),
-        });
-        assert_eq!(app.post_json("/odometry", &odo).await.status(), 202);
-        // Cameras out of step: ext2 20 ms late, ext1 40 ms late (inside the 300 ms window).
-        let robot_frame = scene.frame(&(world_from_base(i) * base_from_camera), t);
-        assert_eq!(app.post_json("/cameras/robot/frames", &robot_frame).await.status(), 202);
-        assert_eq!(
-            app.post_json("/cameras/ext2/frames", &scene.frame(&ext2, t - 20_000_000))
-                .await
-                .status(),
-            202
-        );
-        assert_eq!(
-            app.post_json("/cameras/ext1/frames", &scene.frame(&ext1, t - 40_000_000))
-                .await
-                .status(),
-            202
-        );
+        rig.send_round(&app, &scene, i).await;
         // Let the tracker keep up (a robot streams at 10 Hz).
+        let t = round_stamp(i);
         wait_for(&app, "/tracks", "a step", |v| {
             i < 2
                 || v.as_array()
@@ -308,6 +286,44 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
     let wfg = pose_from_json(&d["world_from_gripper"]);
     assert!((wfg.translation.vector - scene.world_from_object.translation.vector).norm() < 0.3);
     assert!(app.get_json(&format!("/tracks/{id}")).await["decision"]["p_success"].is_number());
+    // That query made the track watched: after the next step the worker draws its samples,
+    // decisions read them without waiting for the tracker, and identical queries within one
+    // step share one answer.
+    rig.send_round(&app, &scene, 10).await;
+    wait_for(&app, &format!("/tracks/{id}"), "a step", |v| {
+        v["stamp_ns"].as_i64() >= Some(t_minus(round_stamp(10)))
+    })
+    .await;
+    // the late external frames of the round may step the tracker again: wait for quiet
+    let mut steps = metric(&app.metrics_text().await, "pregrasp_steps_total");
+    loop {
+        tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+        let now = metric(&app.metrics_text().await, "pregrasp_steps_total");
+        if now == steps {
+            break;
+        }
+        steps = now;
+    }
+    let query = json!({"n_samples": 200, "threshold": 0.8});
+    let a: Value = app
+        .post_json(&format!("/tracks/{id}/decision"), &query)
+        .await
+        .json()
+        .await
+        .expect("decision");
+    let b: Value = app
+        .post_json(&format!("/tracks/{id}/decision"), &query)
+        .await
+        .json()
+        .await
+        .expect("decision");
+    assert_eq!(a, b, "one step, one query: one answer");
+    let metrics = app.metrics_text().await;
+    assert!(
+        metric(&metrics, "pregrasp_decisions_from_bank_total") >= 2.0,
+        "{metrics}"
+    );
+    assert!(metric(&metrics, "pregrasp_decisions_shared_total") >= 1.0, "{metrics}");
     // Bad decision queries change nothing.
     crate::assert_problem(
         app.post_json(&format!("/tracks/{id}/decision"), &json!({"threshold": 1.5}))
@@ -348,6 +364,83 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
         v["codebook"]["status"] == "ready"
     })
     .await;
+    // The tracker's state came back too: the next frames update the same track (no new one
+    // from the detections), and it is still on the truth.
+    let before_restart: Vec<u64> = app
+        .get_json("/tracks")
+        .await
+        .as_array()
+        .expect("tracks")
+        .iter()
+        .filter_map(|t| t["id"].as_u64())
+        .collect();
+    rig.send_round(&app, &scene, 11).await;
+    let after = wait_for(&app, &format!("/tracks/{id}"), "a step after the restart", |v| {
+        v["stamp_ns"].as_i64() >= Some(t_minus(round_stamp(11)))
+    })
+    .await;
+    assert_eq!(after["status"], "tracking");
+    let restored = pose_from_json(&after["world_from_object"]);
+    let err_m = (restored.translation.vector - scene.world_from_object.translation.vector).norm();
+    assert!(err_m < 0.03, "after the restart: {err_m} m");
+    let ids: Vec<u64> = app
+        .get_json("/tracks")
+        .await
+        .as_array()
+        .expect("tracks")
+        .iter()
+        .filter_map(|t| t["id"].as_u64())
+        .collect();
+    assert_eq!(ids, before_restart, "no new track after the restart");
+
+    // A track from a caller's prior: 3 cm off the truth, 30 degrees of rotation spread.
+    let mut prior_pose = scene.world_from_object;
+    prior_pose.translation.vector.x += 0.03;
+    let r = app
+        .post_json(
+            "/tracks",
+            &json!({"object_id": "box", "world_from_object": pose_json(&prior_pose), "translation_std_m": 0.02, "rotation_std_deg": 30.0}),
+        )
+        .await;
+    assert_eq!(r.status(), 201);
+    let started: Value = r.json().await.expect("track");
+    let new_id = started["id"].as_u64().expect("id");
+    assert!(!ids.contains(&new_id));
+    assert_eq!(started["status"], "initialising");
+    let p = pose_from_json(&started["world_from_object"]);
+    assert!((p.translation.vector - prior_pose.translation.vector).norm() < 0.01);
+    assert!(p.rotation.angle_to(&prior_pose.rotation).to_degrees() < 15.0);
+    assert_eq!(app.get_json(&format!("/tracks/{new_id}")).await["id"], new_id);
+    // Bad priors change nothing.
+    let n_tracks = app.get_json("/tracks").await.as_array().expect("tracks").len();
+    let good = pose_json(&prior_pose);
+    for (body, status) in [
+        (json!({"object_id": "nope", "world_from_object": good}), 404),
+        (json!({"object_id": "box"}), 422),
+        (
+            json!({"object_id": "box", "world_from_object": good, "reference_from_object": good}),
+            422,
+        ),
+        (
+            json!({"object_id": "box", "world_from_object": good, "translation_std_m": -1.0}),
+            422,
+        ),
+        (
+            json!({"object_id": "box", "world_from_object": good, "rotation_std_deg": 400.0}),
+            422,
+        ),
+        (
+            json!({"object_id": "box", "world_from_object": {"rotation_xyzw": [0.0, 0.0, 0.0, 2.0], "translation_m": [0.0, 0.0, 0.0]}}),
+            422,
+        ),
+        (json!({"object_id": "box", "world_from_object": good, "extra": 1}), 422),
+    ] {
+        crate::assert_problem(app.post_json("/tracks", &body).await, status).await;
+    }
+    assert_eq!(
+        app.get_json("/tracks").await.as_array().expect("tracks").len(),
+        n_tracks
+    );
 
     // Stopping a track.
     let r = app
@@ -358,6 +451,51 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
         .expect("delete");
     assert_eq!(r.status(), 204);
     crate::assert_problem(app.get(&format!("/tracks/{id}")).await, 404).await;
+}
+
+struct Rig {
+    ext1: Pose,
+    ext2: Pose,
+    base_from_camera: Pose,
+}
+
+fn world_from_base(i: i64) -> Pose {
+    Pose::from_parts(
+        Translation3::new(-1.4 + 0.03 * i as f64 * MOVE, 0.1, -0.75),
+        UnitQuaternion::identity(),
+    )
+}
+
+fn round_stamp(i: i64) -> i64 {
+    1_000_000_000 + i * 100_000_000
+}
+
+impl Rig {
+    /// Round `i` of the replay: odometry, then the robot's frame and the two external cameras
+    /// out of step (ext2 20 ms late, ext1 40 ms late, inside the 300 ms window).
+    async fn send_round(&self, app: &TestApp, scene: &Scene, i: i64) {
+        let t = round_stamp(i);
+        let odo = json!({
+            "stamp_ns": t,
+            "odom_from_base": {"pose": pose_json(&world_from_base(i))},
+            "world_from_odom": pose_json(&Pose::identity()),
+        });
+        assert_eq!(app.post_json("/odometry", &odo).await.status(), 202);
+        let robot_frame = scene.frame(&(world_from_base(i) * self.base_from_camera), t);
+        assert_eq!(app.post_json("/cameras/robot/frames", &robot_frame).await.status(), 202);
+        let f2 = scene.frame(&self.ext2, t - 20_000_000);
+        assert_eq!(app.post_json("/cameras/ext2/frames", &f2).await.status(), 202);
+        let f1 = scene.frame(&self.ext1, t - 40_000_000);
+        assert_eq!(app.post_json("/cameras/ext1/frames", &f1).await.status(), 202);
+    }
+}
+
+/// The value of a metric without labels in Prometheus text.
+fn metric(text: &str, name: &str) -> f64 {
+    text.lines()
+        .find_map(|l| l.strip_prefix(name).and_then(|r| r.strip_prefix(' ')))
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or(f64::NAN)
 }
 
 /// The stamp the tracker has reached when it fused the frames of step `t` (the robot frame is

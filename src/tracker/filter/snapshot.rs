@@ -82,14 +82,24 @@ impl Tracker {
             .position(|m| m.name == object)
             .ok_or_else(|| TrackerError::Config(format!("no model {object:?} in the tracker")))?;
         let t = prior.reference_from_object.translation.vector;
-        let finite = t.iter().all(|v| v.is_finite()) && prior.reference_from_object.rotation.coords.iter().all(|v| v.is_finite());
+        let finite = t.iter().all(|v| v.is_finite())
+            && prior
+                .reference_from_object
+                .rotation
+                .coords
+                .iter()
+                .all(|v| v.is_finite());
         if !finite || !(prior.translation_std_m.is_finite() && prior.translation_std_m >= 0.0) {
-            return Err(TrackerError::Config("prior: non-finite pose or bad translation std".into()));
+            return Err(TrackerError::Config(
+                "prior: non-finite pose or bad translation std".into(),
+            ));
         }
         if let Some(r) = prior.rotation_std_rad
             && !(r.is_finite() && r > 0.0)
         {
-            return Err(TrackerError::Config(format!("prior: rotation std must be > 0, got {r}")));
+            return Err(TrackerError::Config(format!(
+                "prior: rotation std must be > 0, got {r}"
+            )));
         }
         let ci = self
             .camera_names
@@ -144,11 +154,31 @@ impl Tracker {
             weak_steps: 0,
             seen_by: Vec::new(),
         });
-        let state = state_from_column(mi, positions, vec![ci; n], vec![1.0 / n as f64; n], &column, Pose::identity(), None);
+        let state = state_from_column(
+            mi,
+            positions,
+            vec![ci; n],
+            vec![1.0 / n as f64; n],
+            &column,
+            Pose::identity(),
+            None,
+        );
         self.states.push(state);
         let ti = self.states.len() - 1;
         self.refresh_estimate(ti, None);
         Ok(id)
+    }
+
+    /// Stops tracking `track_id`; false when there is no such track.
+    pub fn remove_track(&mut self, track_id: u64) -> bool {
+        match self.index_of(track_id) {
+            Some(i) => {
+                self.tracks.remove(i);
+                self.states.remove(i);
+                true
+            }
+            None => false,
+        }
     }
 
     /// A compact snapshot of every track (see the module docs).
@@ -236,9 +266,15 @@ impl Tracker {
         let sources = t
             .sources
             .iter()
-            .map(|c| self.camera_names.iter().position(|n| n == c).ok_or_else(|| bad(&format!("unknown camera {c:?}"))))
+            .map(|c| {
+                self.camera_names
+                    .iter()
+                    .position(|n| n == c)
+                    .ok_or_else(|| bad(&format!("unknown camera {c:?}")))
+            })
             .collect::<Result<Vec<usize>, _>>()?;
-        let finite = t.positions_m.iter().flatten().all(|v| v.is_finite()) && t.weights.iter().all(|w| w.is_finite() && *w >= 0.0);
+        let finite = t.positions_m.iter().flatten().all(|v| v.is_finite())
+            && t.weights.iter().all(|w| w.is_finite() && *w >= 0.0);
         if !finite || t.weights.iter().sum::<f64>() <= 0.0 {
             return Err(bad("non-finite positions or weights"));
         }
@@ -264,7 +300,15 @@ impl Tracker {
         let rotation = t
             .rotation_xyzw
             .map(|q| UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[3], q[0], q[1], q[2])));
-        let mut state = state_from_column(mi, positions, sources, t.weights.clone(), &column, t.reference_from_hist, rotation);
+        let mut state = state_from_column(
+            mi,
+            positions,
+            sources,
+            t.weights.clone(),
+            &column,
+            t.reference_from_hist,
+            rotation,
+        );
         super::normalise(&mut state.weights);
         match self.index_of(t.track.id) {
             Some(i) => {
@@ -281,7 +325,6 @@ impl Tracker {
         self.refresh_estimate(ti, None);
         Ok(())
     }
-
 }
 
 /// A track state whose particles all carry `column` (normalised) as their histogram.
@@ -299,7 +342,9 @@ fn state_from_column(
     let total: f32 = column.iter().sum();
     let inv = if total > 0.0 { 1.0 / total } else { 0.0 };
     let mut hist = vec![0f32; column.len() * n];
-    hist.par_chunks_mut(n).zip(column.par_iter()).for_each(|(row, v)| row.fill(v * inv));
+    hist.par_chunks_mut(n)
+        .zip(column.par_iter())
+        .for_each(|(row, v)| row.fill(v * inv));
     TrackState {
         model,
         positions,
