@@ -89,7 +89,7 @@ impl Tracker {
                 .coords
                 .iter()
                 .all(|v| v.is_finite());
-        if !finite || !(prior.translation_std_m.is_finite() && prior.translation_std_m >= 0.0) {
+        if !(finite && prior.translation_std_m.is_finite() && prior.translation_std_m >= 0.0) {
             return Err(TrackerError::Config(
                 "prior: non-finite pose or bad translation std".into(),
             ));
