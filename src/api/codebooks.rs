@@ -109,11 +109,47 @@ pub(crate) fn template_renderer() -> Option<&'static Renderer> {
         .as_ref()
 }
 
+/// Nice value of the codebook builder's threads (the tracker runs at the default 0).
+pub const BUILDER_NICE: i32 = 10;
+
+/// Lowers the calling thread's OS priority to [`BUILDER_NICE`] (Linux: the nice value is per
+/// thread); elsewhere a no-op.
+fn lower_thread_priority() {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: setpriority only reads its integer arguments; `who = 0` is the calling thread.
+        #[allow(unsafe_code)]
+        let rc = unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, BUILDER_NICE) };
+        if rc != 0 {
+            tracing::warn!(
+                "cannot lower the codebook builder's priority: {}",
+                std::io::Error::last_os_error()
+            );
+        }
+    }
+}
+
+/// The builder's own thread pool: all cores but one (at least one), every thread at lower OS
+/// priority, so that a codebook build (the encoder's training and matrix products run on
+/// rayon) never competes with the tracker's steps on equal terms.
+fn builder_pool() -> Option<rayon::ThreadPool> {
+    let cores = std::thread::available_parallelism().map_or(2, |n| n.get());
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(cores.saturating_sub(1).max(1))
+        .thread_name(|i| format!("pregrasp-codebook-{i}"))
+        .start_handler(|_| lower_thread_priority())
+        .build()
+        .map_err(|e| tracing::warn!("codebook pool: {e}; building on the global pool"))
+        .ok()
+}
+
 /// Starts the builder thread; it stops when `stop` is set.
 pub fn spawn_builder(state: AppState, stop: Arc<AtomicBool>) -> Option<std::thread::JoinHandle<()>> {
     std::thread::Builder::new()
         .name("pregrasp-codebooks".into())
         .spawn(move || {
+            lower_thread_priority();
+            let pool = builder_pool();
             while !stop.load(Ordering::Relaxed) {
                 let next = {
                     let reg = state.registry();
@@ -146,7 +182,11 @@ pub fn spawn_builder(state: AppState, stop: Arc<AtomicBool>) -> Option<std::thre
                             error: None,
                         },
                     );
-                    match build(&state, &id, step, &config) {
+                    let built = match &pool {
+                        Some(p) => p.install(|| build(&state, &id, step, &config)),
+                        None => build(&state, &id, step, &config),
+                    };
+                    match built {
                         Ok(()) => set_codebook_status(
                             &state,
                             &id,
@@ -183,4 +223,34 @@ pub fn spawn_builder(state: AppState, stop: Arc<AtomicBool>) -> Option<std::thre
             }
         })
         .ok()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    #[cfg(target_os = "linux")]
+    fn builder_pool_threads_run_at_lower_priority() {
+        let pool = builder_pool().expect("pool");
+        let nices: Vec<i32> = pool.install(|| {
+            use rayon::prelude::*;
+            (0..64)
+                .into_par_iter()
+                // SAFETY: getpriority only reads its integer arguments.
+                .map(|_| {
+                    #[allow(unsafe_code)]
+                    unsafe {
+                        libc::getpriority(libc::PRIO_PROCESS, 0)
+                    }
+                })
+                .collect()
+        });
+        assert!(nices.iter().all(|n| *n >= BUILDER_NICE), "{nices:?}");
+        // ... and the caller's thread is untouched
+        // SAFETY: as above.
+        #[allow(unsafe_code)]
+        let here = unsafe { libc::getpriority(libc::PRIO_PROCESS, 0) };
+        assert!(here < BUILDER_NICE);
+    }
 }
