@@ -11,8 +11,10 @@
 //!    time; samples the process's resident memory every 10 s.
 //! 3. Reports the server's ingest-to-estimate latency quantiles (from `/metrics`), the achieved
 //!    step rate, dropped frames, and the memory samples.
-//! 4. Then `DECISION_CLIENTS` concurrent clients each ask `DECISIONS_PER_CLIENT` decisions
-//!    (default query: 1,000 samples) for the target's track; reports p50/p99 client latency.
+//! 4. `DECISION_CLIENTS` concurrent clients each ask `DECISIONS_PER_CLIENT` decisions
+//!    (default query: 1,000 samples) for the target's track, once mid-soak while the frames
+//!    stream (how a planner meets it) and once after the stream stopped; reports p50/p99
+//!    client latency of each.
 
 use pregrasp::api::demo::{DemoScene, register};
 use pregrasp::api::{ApiConfig, AppState};
@@ -66,6 +68,97 @@ fn pose_json(p: &Pose) -> Value {
 fn quantile(v: &mut [f64], q: f64) -> f64 {
     v.sort_by(|a, b| a.partial_cmp(b).expect("finite"));
     v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
+/// Client latencies of one decision load.
+struct DecisionLoad {
+    track: u64,
+    clients: usize,
+    per_client: usize,
+    latencies_ms: Vec<f64>,
+    failed: usize,
+    wall_s: f64,
+}
+
+impl DecisionLoad {
+    fn print(mut self, when: &str) {
+        println!(
+            "== decisions {when}: {} concurrent clients x {} (default query, 1,000 samples), track {}",
+            self.clients, self.per_client, self.track
+        );
+        if self.latencies_ms.is_empty() {
+            println!("all {} decisions failed", self.failed);
+            return;
+        }
+        let n = self.latencies_ms.len();
+        println!(
+            "ok {n}, failed {}; p50 {:.0} ms, p99 {:.0} ms, max {:.0} ms; {:.1} decisions/s",
+            self.failed,
+            quantile(&mut self.latencies_ms, 0.5),
+            quantile(&mut self.latencies_ms, 0.99),
+            quantile(&mut self.latencies_ms, 1.0),
+            n as f64 / self.wall_s
+        );
+    }
+}
+
+/// `clients` concurrent clients each ask `per_client` decisions for the target's track.
+async fn decision_load(
+    http: &reqwest::Client,
+    base: &str,
+    clients: usize,
+    per_client: usize,
+) -> anyhow::Result<Option<DecisionLoad>> {
+    let tracks: Value = http.get(format!("{base}/tracks")).send().await?.json().await?;
+    let Some(id) = tracks
+        .as_array()
+        .into_iter()
+        .flatten()
+        .find(|t| t["object_id"] == pregrasp::api::demo::DEMO_TARGET)
+        .and_then(|t| t["id"].as_u64())
+    else {
+        return Ok(None);
+    };
+    let t_dec = Instant::now();
+    let mut tasks = Vec::new();
+    for _ in 0..clients {
+        let (http, base) = (http.clone(), base.to_string());
+        tasks.push(tokio::spawn(async move {
+            let mut lat = Vec::new();
+            let mut failed = 0;
+            for _ in 0..per_client {
+                let t = Instant::now();
+                match http
+                    .post(format!("{base}/tracks/{id}/decision"))
+                    .json(&json!({}))
+                    .send()
+                    .await
+                {
+                    Ok(r) if r.status().is_success() => {
+                        let _ = r.bytes().await;
+                        lat.push(t.elapsed().as_secs_f64() * 1e3);
+                    }
+                    _ => failed += 1,
+                }
+            }
+            (lat, failed)
+        }));
+    }
+    let mut latencies_ms = Vec::new();
+    let mut failed = 0;
+    for t in tasks {
+        let (l, f) = t.await?;
+        latencies_ms.extend(l);
+        failed += f;
+    }
+    Ok(Some(DecisionLoad {
+        track: id,
+        clients,
+        per_client,
+        latencies_ms,
+        failed,
+        wall_s: t_dec.elapsed().as_secs_f64(),
+    }))
 }
 
 #[tokio::main]
@@ -186,6 +279,13 @@ async fn main() -> anyhow::Result<()> {
             (sent, refused)
         }));
     }
+    let during = {
+        let (http, base) = (http.clone(), base.clone());
+        tokio::spawn(async move {
+            tokio::time::sleep(Duration::from_secs_f64((soak_s / 2.0).min(60.0))).await;
+            decision_load(&http, &base, clients, per_client).await
+        })
+    };
     let mut rss_samples = vec![(0.0, rss_start)];
     while t0.elapsed().as_secs_f64() < soak_s {
         tokio::time::sleep(Duration::from_secs(10)).await;
@@ -235,63 +335,16 @@ async fn main() -> anyhow::Result<()> {
             .join(" ")
     );
 
-    // Decisions under concurrent load (the frame stream has stopped).
-    let tracks: Value = http.get(format!("{base}/tracks")).send().await?.json().await?;
-    let target = tracks
-        .as_array()
-        .into_iter()
-        .flatten()
-        .find(|t| t["object_id"] == pregrasp::api::demo::DEMO_TARGET)
-        .and_then(|t| t["id"].as_u64());
-    if let Some(id) = target {
-        let t_dec = Instant::now();
-        let mut tasks = Vec::new();
-        for _ in 0..clients {
-            let (http, base) = (http.clone(), base.clone());
-            tasks.push(tokio::spawn(async move {
-                let mut lat = Vec::new();
-                let mut failed = 0;
-                for _ in 0..per_client {
-                    let t = Instant::now();
-                    match http
-                        .post(format!("{base}/tracks/{id}/decision"))
-                        .json(&json!({}))
-                        .send()
-                        .await
-                    {
-                        Ok(r) if r.status().is_success() => {
-                            let _ = r.bytes().await;
-                            lat.push(t.elapsed().as_secs_f64() * 1e3);
-                        }
-                        _ => failed += 1,
-                    }
-                }
-                (lat, failed)
-            }));
-        }
-        let mut lat = Vec::new();
-        let mut failed = 0;
-        for t in tasks {
-            let (l, f) = t.await?;
-            lat.extend(l);
-            failed += f;
-        }
-        let wall = t_dec.elapsed().as_secs_f64();
-        println!("== decisions: {clients} concurrent clients x {per_client} (1,000 samples each), track {id}");
-        if !lat.is_empty() {
-            let n = lat.len();
-            println!(
-                "ok {n}, failed {failed}; p50 {:.0} ms, p99 {:.0} ms, max {:.0} ms; {:.1} decisions/s",
-                quantile(&mut lat, 0.5),
-                quantile(&mut lat, 0.99),
-                quantile(&mut lat, 1.0),
-                n as f64 / wall
-            );
-        } else {
-            println!("all {failed} decisions failed");
-        }
+    // Decisions under concurrent load while the frames stream (started mid-soak), then again
+    // after the stream stopped.
+    if let Some(during) = during.await? {
+        during.print(&format!("while 3 cameras stream at {CAMERA_HZ} Hz"));
     } else {
-        println!("no track of the target: no decision load");
+        println!("no track of the target mid-soak: no decision load while streaming");
+    }
+    match decision_load(&http, &base, clients, per_client).await? {
+        Some(after) => after.print("after the stream stopped"),
+        None => println!("no track of the target: no decision load"),
     }
     let _ = tx.send(());
     server.await??;
