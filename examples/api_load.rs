@@ -337,7 +337,7 @@ async fn main() -> anyhow::Result<()> {
 
     // Decisions under concurrent load while the frames stream (started mid-soak), then again
     // after the stream stopped.
-    if let Some(during) = during.await? {
+    if let Some(during) = during.await?? {
         during.print(&format!("while 3 cameras stream at {CAMERA_HZ} Hz"));
     } else {
         println!("no track of the target mid-soak: no decision load while streaming");
