@@ -366,14 +366,7 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
     .await;
     // The tracker's state came back too: the next frames update the same track (no new one
     // from the detections), and it is still on the truth.
-    let before_restart: Vec<u64> = app
-        .get_json("/tracks")
-        .await
-        .as_array()
-        .expect("tracks")
-        .iter()
-        .filter_map(|t| t["id"].as_u64())
-        .collect();
+    let before_restart = track_ids(&app).await;
     rig.send_round(&app, &scene, 11).await;
     let after = wait_for(&app, &format!("/tracks/{id}"), "a step after the restart", |v| {
         v["stamp_ns"].as_i64() >= Some(t_minus(round_stamp(11)))
@@ -383,14 +376,7 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
     let restored = pose_from_json(&after["world_from_object"]);
     let err_m = (restored.translation.vector - scene.world_from_object.translation.vector).norm();
     assert!(err_m < 0.03, "after the restart: {err_m} m");
-    let ids: Vec<u64> = app
-        .get_json("/tracks")
-        .await
-        .as_array()
-        .expect("tracks")
-        .iter()
-        .filter_map(|t| t["id"].as_u64())
-        .collect();
+    let ids = track_ids(&app).await;
     assert_eq!(ids, before_restart, "no new track after the restart");
 
     // A track from a caller's prior: 3 cm off the truth, 30 degrees of rotation spread.
@@ -488,6 +474,16 @@ impl Rig {
         let f1 = scene.frame(&self.ext1, t - 40_000_000);
         assert_eq!(app.post_json("/cameras/ext1/frames", &f1).await.status(), 202);
     }
+}
+
+async fn track_ids(app: &TestApp) -> Vec<u64> {
+    let tracks = app.get_json("/tracks").await;
+    tracks
+        .as_array()
+        .expect("tracks")
+        .iter()
+        .filter_map(|t| t["id"].as_u64())
+        .collect()
 }
 
 /// The value of a metric without labels in Prometheus text.
