@@ -254,15 +254,23 @@ pub fn with_wide_simd<R>(f: impl FnOnce() -> R) -> R {
     pulp::Arch::new().dispatch(Op(f))
 }
 
+std::thread_local! {
+    /// Per-thread work space of [`blur`] (its ring of blurred slabs), kept between calls so
+    /// that its pages are not faulted in again at every step.
+    static BLUR_WORK: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
 /// Separable Gaussian blur of `n_p` histograms (bin-major layout) with `kernel`: azimuth and
 /// in-plane wrap around (they are angles), elevation is truncated at the poles with the kernel
 /// renormalised so that each source row keeps its mass. `scratch` is resized as needed and
 /// reused between calls (the result may end up in either buffer's allocation).
 ///
-/// Per elevation slab (one task each): the in-plane pass into a per-task buffer, the azimuth
-/// pass back into the slab; then the elevation pass into `scratch`, and the buffers swap. Each
-/// output is summed in registers over the taps (one store instead of one per tap). Bitwise
-/// equal to [`blur_reference`].
+/// One streaming sweep per block of elevation rows (a few blocks per thread): each source
+/// slab (one elevation, 72 x 72 bins x `n_p`) is read once and blurred in-plane and in azimuth
+/// into a ring of `taps` slabs held in cache, and each output slab is the elevation-weighted
+/// sum of the ring, written once into `scratch`; the buffers then swap. The histograms thus
+/// cross memory once each way (the pass-per-axis version crossed it three times), and each
+/// output is summed in registers over the taps. Bitwise equal to [`blur_reference`].
 pub fn blur(grid: &RotationGrid, h: &mut Vec<f32>, n_p: usize, kernel: &[f32], scratch: &mut Vec<f32>) {
     let ne = grid.n_elevation();
     let na = grid.n_azimuth();
@@ -272,76 +280,95 @@ pub fn blur(grid: &RotationGrid, h: &mut Vec<f32>, n_p: usize, kernel: &[f32], s
         return;
     }
     let taps = kernel.len();
-    let r = (taps / 2) as isize;
+    let r = taps / 2;
     let row_len = ni * n_p;
     let slab = na * row_len;
     // wrap-around source offsets per output index, `taps` each
     let wrapped = |len: usize, unit: usize| -> Vec<usize> {
         (0..len)
             .flat_map(|i| {
-                (0..taps).map(move |k| (i as isize + k as isize - r).rem_euclid(len as isize) as usize * unit)
+                (0..taps).map(move |k| (i as isize + k as isize - r as isize).rem_euclid(len as isize) as usize * unit)
             })
             .collect()
     };
     let inplane_offsets = wrapped(ni, n_p);
     let azimuth_offsets = wrapped(na, row_len);
-    h.par_chunks_mut(slab).for_each_init(
-        || vec![0f32; slab],
-        |tmp, slab_h| {
-            with_wide_simd(
-                #[inline(always)]
-                || {
-                    for a in 0..na {
-                        let src = &slab_h[a * row_len..(a + 1) * row_len];
-                        let dst_row = &mut tmp[a * row_len..(a + 1) * row_len];
-                        for (i, dst) in dst_row.chunks_mut(n_p).enumerate() {
-                            weighted_rows(dst, src, &inplane_offsets[i * taps..(i + 1) * taps], kernel);
-                        }
-                    }
-                    for (a, dst) in slab_h.chunks_mut(row_len).enumerate() {
-                        weighted_rows(dst, tmp, &azimuth_offsets[a * taps..(a + 1) * taps], kernel);
-                    }
-                },
-            )
-        },
-    );
-    // elevation pass (truncated; each source row spreads its mass over the rows that exist):
-    // from h into scratch, then swap the buffers
-    let row_sum = |j: isize| -> f32 {
+    // elevation: each source row spreads its mass over the rows that exist
+    let row_sum = |j: usize| -> f32 {
         kernel
             .iter()
             .enumerate()
             .filter(|(k, _)| {
-                let e = j - (*k as isize - r);
+                let e = j as isize - (*k as isize - r as isize);
                 e >= 0 && e < ne as isize
             })
             .map(|(_, w)| *w)
             .sum()
     };
+    let row_sums: Vec<f32> = (0..ne).map(row_sum).collect();
     scratch.resize(h.len(), 0.0);
-    std::mem::swap(h, scratch);
-    let src: &[f32] = scratch;
-    // one task per (elevation, part of the slab): enough tasks for all threads
-    let rows_per_task = (1..=8).rev().find(|d| na % d == 0).unwrap_or(1);
-    let part = row_len * rows_per_task;
-    h.par_chunks_mut(part).enumerate().for_each(|(c, dst)| {
-        let e = (c * part) / slab;
-        let within = c * part - e * slab;
-        let mut offsets = Vec::with_capacity(taps);
-        let mut w = Vec::with_capacity(taps);
-        for (k, &wk) in kernel.iter().enumerate() {
-            let j = e as isize + k as isize - r;
-            if j < 0 || j >= ne as isize {
-                continue;
+    let src: &[f32] = h;
+    let blocks = (rayon::current_num_threads() * 2).clamp(1, ne);
+    let per = ne.div_ceil(blocks);
+    scratch.par_chunks_mut(per * slab).enumerate().for_each(|(t, out)| {
+        BLUR_WORK.with_borrow_mut(|work| {
+            // ring of `taps` in-plane and azimuth blurred slabs, plus one slab between the two
+            work.resize((taps + 1) * slab, 0.0);
+            let (ring, tmp) = work.split_at_mut(taps * slab);
+            let e0 = t * per;
+            let e1 = (e0 + per).min(ne);
+            let mut next = e0.saturating_sub(r);
+            let mut offsets = Vec::with_capacity(taps);
+            let mut w = Vec::with_capacity(taps);
+            for e in e0..e1 {
+                // source slabs up to e + r; slab j lives in slot j % taps (the slot it
+                // overwrites held slab j - taps < e - r, which no output from e on reads)
+                while next < (e + r + 1).min(ne) {
+                    let slot = &mut ring[(next % taps) * slab..(next % taps + 1) * slab];
+                    let src_slab = &src[next * slab..(next + 1) * slab];
+                    with_wide_simd(
+                        #[inline(always)]
+                        || {
+                            for (a, tmp_row) in tmp.chunks_mut(row_len).enumerate() {
+                                let src_row = &src_slab[a * row_len..(a + 1) * row_len];
+                                for (i, dst) in tmp_row.chunks_mut(n_p).enumerate() {
+                                    weighted_rows(dst, src_row, &inplane_offsets[i * taps..(i + 1) * taps], kernel);
+                                }
+                            }
+                            for (a, dst) in slot.chunks_mut(row_len).enumerate() {
+                                weighted_rows(dst, tmp, &azimuth_offsets[a * taps..(a + 1) * taps], kernel);
+                            }
+                        },
+                    );
+                    next += 1;
+                }
+                offsets.clear();
+                w.clear();
+                for (k, &wk) in kernel.iter().enumerate() {
+                    let j = e as isize + k as isize - r as isize;
+                    if j < 0 || j >= ne as isize {
+                        continue;
+                    }
+                    let j = j as usize;
+                    offsets.push((j % taps) * slab);
+                    w.push(wk / row_sums[j]);
+                }
+                let dst = &mut out[(e - e0) * slab..(e - e0 + 1) * slab];
+                with_wide_simd(
+                    #[inline(always)]
+                    || {
+                        // row by row, so that the offsets stay those of whole rows
+                        for (a, dst_row) in dst.chunks_mut(row_len).enumerate() {
+                            let base = a * row_len;
+                            let ring_rows: &[f32] = &ring[base..];
+                            weighted_rows(dst_row, ring_rows, &offsets, &w);
+                        }
+                    },
+                );
             }
-            offsets.push(j as usize * slab + within);
-            w.push(wk / row_sum(j));
-        }
-        with_wide_simd(
-            #[inline(always)]
-            || weighted_rows(dst, src, &offsets, &w),
-        );
+        })
     });
+    std::mem::swap(h, scratch);
 }
 
 /// The straightforward blur (one tap at a time, each into memory): the reference that tests
