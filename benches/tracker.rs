@@ -1,15 +1,20 @@
 //! One filter step of the multi-view tracker at the paper's size: 110 particles (50 from the
 //! robot camera, 30 from each of two external cameras), 3 views of 640 x 480 with depth and
 //! colour, the full 37 x 72 x 72 grid; per-stage times; and, in the same run, the plain f32
-//! GEMM of the matching's size (330 x 128 by 128 x 191,808) for the ratio.
+//! GEMM of the matching's size (330 x 128 by 128 x 191,808, the `gemm` crate on all threads)
+//! for the ratio. Before criterion's own runs, steps and GEMMs alternate
+//! (`PREGRASP_BENCH_PAIRS`, default 9) and the medians are printed: per stage, the step, the
+//! GEMM, and the step / GEMM ratio of each pair (the machine's load cancels out of it).
 //!
-//! Run: `WGPU_BACKEND=vulkan cargo bench --bench tracker` (the codebook is cached under
-//! `target/tracker-bench-cache`; its build time is printed when it is built). Mesh:
+//! Run: `WGPU_BACKEND=vulkan cargo bench --bench tracker -- --noplot` (the codebook is cached
+//! under `target/tracker-bench-cache`; its build time is printed when it is built;
+//! `PREGRASP_BENCH_SKIP_COARSE=1` skips the 10-degree build times). Mesh:
 //! `PREGRASP_BENCH_MESH` (default the YCB cracker box from the shared folder, else the
-//! built-in box).
+//! built-in box). The peak resident memory after four steps tracking one object is printed
+//! before the reference GEMM allocates its output.
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use nalgebra::{DMatrix, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Translation3, UnitQuaternion, Vector3};
 use pregrasp::camera::Intrinsics;
 use pregrasp::geometry::{Pose, RotationGrid};
 use pregrasp::mesh::Mesh;
@@ -206,35 +211,104 @@ fn setup() -> (Tracker, Vec<CameraFrame>, RobotOdometry, Arc<Codebook>) {
     (tracker, quiet, odo, cb)
 }
 
-fn stages(tracker: &mut Tracker, frames: &[CameraFrame], odo: &RobotOdometry) {
-    let n = 5;
-    let mut sum = StageTimings::default();
+/// The plain f32 GEMM of the matching's size with the `gemm` crate, one call on all threads:
+/// `dst (rows x bins, column-major) = codes (rows x k, row-major) * book^T`.
+fn plain_gemm(dst: &mut [f32], codes: &[f32], book: &[f32], rows: usize, k: usize) {
+    let bins = book.len() / k;
+    assert_eq!(dst.len(), rows * bins);
+    assert_eq!(codes.len(), rows * k);
+    // SAFETY: the slices hold exactly the matrices the strides address (checked above) and
+    // `dst` does not alias the inputs; `read_dst = false`.
+    #[allow(unsafe_code)] // the reference GEMM calls the gemm crate directly
+    unsafe {
+        gemm::gemm(
+            rows,
+            bins,
+            k,
+            dst.as_mut_ptr(),
+            rows as isize,
+            1,
+            false,
+            codes.as_ptr(),
+            1,
+            k as isize,
+            book.as_ptr(),
+            k as isize,
+            1,
+            0.0,
+            1.0,
+            false,
+            false,
+            false,
+            gemm::Parallelism::Rayon(rayon::current_num_threads()),
+        );
+    }
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let m = v.len() / 2;
+    if v.len() % 2 == 1 {
+        v[m]
+    } else {
+        0.5 * (v[m - 1] + v[m])
+    }
+}
+
+/// Steps interleaved with the reference GEMM (330 x 128 by 128 x bins), so that both see the
+/// same machine load: per-stage medians, the step's and the GEMM's medians, and the median of
+/// the per-pair ratios step / GEMM.
+fn stages(tracker: &mut Tracker, frames: &[CameraFrame], odo: &RobotOdometry, cb: &Codebook) {
+    let n = std::env::var("PREGRASP_BENCH_PAIRS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(9usize);
+    let k = cb.code_dim();
+    let mut codes: Vec<f32> = (0..330 * k)
+        .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
+        .collect();
+    pregrasp::tracker::encoder::normalise_rows(&mut codes, k);
+    let mut dst = vec![0f32; 330 * cb.n_bins()];
+    plain_gemm(&mut dst, &codes, &cb.codes, 330, k); // touch the pages once
+    let mut all: Vec<StageTimings> = Vec::new();
+    let mut gemm_s = Vec::new();
+    let mut ratio = Vec::new();
     for _ in 0..n {
         let t = tracker.step(frames, Some(odo)).expect("step").timings;
-        sum.motion_s += t.motion_s;
-        sum.crops_s += t.crops_s;
-        sum.encoding_s += t.encoding_s;
-        sum.matching_s += t.matching_s;
-        sum.likelihoods_s += t.likelihoods_s;
-        sum.fusion_s += t.fusion_s;
-        sum.blur_s += t.blur_s;
-        sum.resampling_s += t.resampling_s;
-        sum.estimates_s += t.estimates_s;
-        sum.total_s += t.total_s;
+        let t0 = Instant::now();
+        plain_gemm(&mut dst, &codes, &cb.codes, 330, k);
+        let g = t0.elapsed().as_secs_f64();
+        black_box(dst[0]);
+        ratio.push(t.total_s / g);
+        gemm_s.push(g);
+        all.push(t);
     }
-    let ms = |v: f64| v / n as f64 * 1e3;
+    let med = |f: &dyn Fn(&StageTimings) -> f64| median(&mut all.iter().map(f).collect::<Vec<f64>>()) * 1e3;
     eprintln!(
-        "stage means over {n} steps (ms): motion {:.1}, crops {:.1}, encoding {:.1}, matching {:.1}, likelihoods {:.1}, fusion {:.1}, blur {:.1}, resampling {:.1}, estimates {:.1}, total {:.1}",
-        ms(sum.motion_s),
-        ms(sum.crops_s),
-        ms(sum.encoding_s),
-        ms(sum.matching_s),
-        ms(sum.likelihoods_s),
-        ms(sum.fusion_s),
-        ms(sum.blur_s),
-        ms(sum.resampling_s),
-        ms(sum.estimates_s),
-        ms(sum.total_s)
+        "stage medians over {n} steps (ms): motion {:.1}, crops {:.1}, encoding {:.1}, matching {:.1}, likelihoods {:.1}, fusion {:.1}, blur {:.1}, resampling {:.1}, estimates {:.1}, total {:.1}",
+        med(&|t| t.motion_s),
+        med(&|t| t.crops_s),
+        med(&|t| t.encoding_s),
+        med(&|t| t.matching_s),
+        med(&|t| t.likelihoods_s),
+        med(&|t| t.fusion_s),
+        med(&|t| t.blur_s),
+        med(&|t| t.resampling_s),
+        med(&|t| t.estimates_s),
+        med(&|t| t.total_s)
+    );
+    let mut totals: Vec<f64> = all.iter().map(|t| t.total_s * 1e3).collect();
+    totals.sort_by(f64::total_cmp);
+    eprintln!(
+        "step {:.1} ms (min {:.1}, max {:.1}); gemm crate GEMM 330x{k} by {k}x{} on {} threads {:.1} ms (min {:.1}); step / GEMM median of pairs {:.2}",
+        median(&mut totals.clone()),
+        totals[0],
+        totals[totals.len() - 1],
+        cb.n_bins(),
+        rayon::current_num_threads(),
+        median(&mut gemm_s.clone()) * 1e3,
+        gemm_s.iter().cloned().fold(f64::INFINITY, f64::min) * 1e3,
+        median(&mut ratio)
     );
 }
 
@@ -253,37 +327,36 @@ fn peak_rss_mb() -> f64 {
 
 fn bench(c: &mut Criterion) {
     let (mut tracker, frames, odo, cb) = setup();
-    stages(&mut tracker, &frames, &odo);
+    eprintln!(
+        "peak RSS after 4 steps tracking one object (codebook loaded or built in this process): {:.0} MB",
+        peak_rss_mb()
+    );
+    stages(&mut tracker, &frames, &odo, &cb);
     let mut g = c.benchmark_group("tracker");
     g.sample_size(10);
     g.bench_function("filter_step_110p_3views_640x480_full_grid", |b| {
         b.iter(|| black_box(tracker.step(&frames, Some(&odo)).expect("step")))
     });
-    eprintln!(
-        "peak RSS while tracking (before the GEMM comparison allocates its 253 MB outputs): {:.0} MB",
-        peak_rss_mb()
-    );
-    // the matching's GEMM alone: 330 unit codes against the whole codebook, chunked over threads
+    // the matching alone (330 codes against the whole codebook, with each code's best bin),
+    // and the plain GEMM of its size (the `gemm` crate, one call on all threads)
     let k = cb.code_dim();
     let mut codes: Vec<f32> = (0..330 * k)
         .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
         .collect();
     pregrasp::tracker::encoder::normalise_rows(&mut codes, k);
     let mut out = Vec::new();
-    g.bench_function("gemm_330x128_by_128x191808_chunked", |b| {
+    g.bench_function("match_codes_330_by_191808", |b| {
         b.iter(|| {
-            match_codes(&cb, &codes, 330, &mut out);
-            black_box(out.len())
+            let best = match_codes(&cb, &codes, 330, &mut out);
+            black_box(best.0[0])
         })
     });
-    // one plain matrixmultiply call (one thread)
-    let q = DMatrix::<f32>::from_row_slice(330, k, &codes);
-    let cm = DMatrix::<f32>::from_column_slice(k, cb.n_bins(), &cb.codes);
-    let mut s = DMatrix::<f32>::zeros(330, cb.n_bins());
-    g.bench_function("gemm_330x128_by_128x191808_plain_one_call", |b| {
+    drop(out);
+    let mut dst = vec![0f32; 330 * cb.n_bins()];
+    g.bench_function("gemm_crate_330x128_by_128x191808", |b| {
         b.iter(|| {
-            s.gemm(1.0, &q, &cm, 0.0);
-            black_box(s[(0, 0)])
+            plain_gemm(&mut dst, &codes, &cb.codes, 330, k);
+            black_box(dst[0])
         })
     });
     g.finish();

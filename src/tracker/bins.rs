@@ -6,7 +6,8 @@
 //! and it lets the blur vectorise across particles.
 
 use crate::geometry::RotationGrid;
-use nalgebra::{Matrix3, UnitQuaternion, Vector3};
+use crate::tracker::observation::ViewEvidence;
+use nalgebra::{DMatrixView, DMatrixViewMut, Matrix3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
 use std::f64::consts::PI;
 
@@ -115,6 +116,76 @@ impl GridTables {
     }
 }
 
+/// `dst[b * m + p] = sum_k lhs[p * kd + k] * rhs[b * kd + k]` for `p < m`, `b < n`: the
+/// similarities of `m` codes (rows of `lhs`) with `n` codebook codes (rows of `rhs`), written
+/// bin-major. One thread (callers split the bins over threads). nalgebra's GEMM
+/// (`matrixmultiply`) picks its kernel at run time: AVX-512 where the CPU has it, which the
+/// `gemm` crate (without its `x86-v4` feature) does not use.
+pub fn gemm_nt(dst: &mut [f32], lhs: &[f32], rhs: &[f32], m: usize, n: usize, kd: usize) {
+    assert_eq!(dst.len(), m * n, "dst size");
+    assert_eq!(lhs.len(), m * kd, "lhs size");
+    assert_eq!(rhs.len(), n * kd, "rhs size");
+    if m == 0 || n == 0 {
+        return;
+    }
+    let q = DMatrixView::from_slice_with_strides(lhs, m, kd, kd, 1);
+    let c = DMatrixView::from_slice(rhs, kd, n);
+    let mut s = DMatrixViewMut::from_slice(dst, m, n);
+    s.gemm(1.0, &q, &c, 0.0);
+}
+
+/// Bins per matching task: the task's similarities (`n x 1,024` f32, 450 kB for 110
+/// particles) are still in cache when its best values are taken.
+const MATCH_CHUNK_BINS: usize = 1024;
+
+/// Cosine similarities of `n` codes (row-major `n x kd`) with every code of `book` (row-major
+/// `bins x kd`) into `out` (bin-major: `out[b * n + p]`, resized), chunked over all threads;
+/// returns each particle's best similarity and the lowest bin that reaches it (`u32::MAX`
+/// when none does, e.g. NaN codes).
+pub fn match_best(codes: &[f32], book: &[f32], n: usize, kd: usize, out: &mut Vec<f32>) -> (Vec<f32>, Vec<u32>) {
+    let nb = if kd == 0 { 0 } else { book.len() / kd };
+    out.resize(nb * n, 0.0);
+    if n == 0 || nb == 0 {
+        return (vec![f32::NEG_INFINITY; n], vec![u32::MAX; n]);
+    }
+    out.par_chunks_mut(MATCH_CHUNK_BINS * n)
+        .enumerate()
+        .map(|(c, chunk)| {
+            let b0 = c * MATCH_CHUNK_BINS;
+            let len = chunk.len() / n;
+            gemm_nt(chunk, codes, &book[b0 * kd..(b0 + len) * kd], n, len, kd);
+            let mut m = vec![f32::NEG_INFINITY; n];
+            let mut a = vec![u32::MAX; n];
+            with_wide_simd(
+                #[inline(always)]
+                || {
+                    for (r, row) in chunk.chunks(n).enumerate() {
+                        let b = (b0 + r) as u32;
+                        for ((mi, ai), v) in m.iter_mut().zip(a.iter_mut()).zip(row) {
+                            // strict: the lowest bin wins a tie
+                            let better = *v > *mi;
+                            *ai = if better { b } else { *ai };
+                            *mi = if better { *v } else { *mi };
+                        }
+                    }
+                },
+            );
+            (m, a)
+        })
+        .reduce(
+            || (vec![f32::NEG_INFINITY; n], vec![u32::MAX; n]),
+            |(mut m0, mut a0), (m1, a1)| {
+                for p in 0..n {
+                    if m1[p] > m0[p] || (m1[p] == m0[p] && a1[p] < a0[p]) {
+                        m0[p] = m1[p];
+                        a0[p] = a1[p];
+                    }
+                }
+                (m0, a0)
+            },
+        )
+}
+
 /// A normalised 1-D Gaussian kernel of `2 * radius + 1` taps.
 pub fn gaussian_kernel(radius: usize, sigma_bins: f64) -> Vec<f32> {
     let mut k: Vec<f64> = (0..=2 * radius)
@@ -130,10 +201,179 @@ pub fn gaussian_kernel(radius: usize, sigma_bins: f64) -> Vec<f32> {
     k.into_iter().map(|v| v as f32).collect()
 }
 
+/// Lanes of the blur's register accumulators.
+const BLUR_LANES: usize = 16;
+
+/// `dst[i] = sum_t w[t] * src[offsets[t] + i]`, accumulated in tap order from 0 (the same
+/// rounding as adding one tap at a time), with the running sums in registers. `dst` must not
+/// overlap `src`: the last block is aligned to the end of `dst` and may recompute (identically)
+/// values of the block before it, so that no element takes a scalar path.
+#[inline(always)]
+fn weighted_rows(dst: &mut [f32], src: &[f32], offsets: &[usize], w: &[f32]) {
+    let len = dst.len();
+    if len < BLUR_LANES {
+        for (j, d) in dst.iter_mut().enumerate() {
+            let mut a = 0f32;
+            for (&o, &wt) in offsets.iter().zip(w) {
+                a += wt * src[o + j];
+            }
+            *d = a;
+        }
+        return;
+    }
+    let mut i = 0;
+    loop {
+        let mut acc = [0f32; BLUR_LANES];
+        for (&o, &wt) in offsets.iter().zip(w) {
+            let s = &src[o + i..o + i + BLUR_LANES];
+            for (a, v) in acc.iter_mut().zip(s) {
+                *a += wt * v;
+            }
+        }
+        dst[i..i + BLUR_LANES].copy_from_slice(&acc);
+        if i + BLUR_LANES == len {
+            break;
+        }
+        i = (i + BLUR_LANES).min(len - BLUR_LANES);
+    }
+}
+
+/// Runs `f` compiled for the widest SIMD instruction set the CPU has (AVX2 + FMA, or
+/// AVX-512), detected at run time: the loops inlined into it vectorise to that width. The
+/// arithmetic is the same (no fused multiply-adds are formed), so results are identical.
+#[inline(always)]
+pub fn with_wide_simd<R>(f: impl FnOnce() -> R) -> R {
+    struct Op<F>(F);
+    impl<R, F: FnOnce() -> R> pulp::WithSimd for Op<F> {
+        type Output = R;
+        #[inline(always)]
+        fn with_simd<S: pulp::Simd>(self, _simd: S) -> R {
+            (self.0)()
+        }
+    }
+    pulp::Arch::new().dispatch(Op(f))
+}
+
+std::thread_local! {
+    /// Per-thread work space of [`blur`] (its ring of blurred slabs), kept between calls so
+    /// that its pages are not faulted in again at every step.
+    static BLUR_WORK: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
 /// Separable Gaussian blur of `n_p` histograms (bin-major layout) with `kernel`: azimuth and
 /// in-plane wrap around (they are angles), elevation is truncated at the poles with the kernel
-/// renormalised. `scratch` is resized as needed and reused between calls.
+/// renormalised so that each source row keeps its mass. `scratch` is resized as needed and
+/// reused between calls (the result may end up in either buffer's allocation).
+///
+/// One streaming sweep per block of elevation rows (a few blocks per thread): each source
+/// slab (one elevation, 72 x 72 bins x `n_p`) is read once and blurred in-plane and in azimuth
+/// into a ring of `taps` slabs held in cache, and each output slab is the elevation-weighted
+/// sum of the ring, written once into `scratch`; the buffers then swap. The histograms thus
+/// cross memory once each way (the pass-per-axis version crossed it three times), and each
+/// output is summed in registers over the taps. Bitwise equal to [`blur_reference`].
 pub fn blur(grid: &RotationGrid, h: &mut Vec<f32>, n_p: usize, kernel: &[f32], scratch: &mut Vec<f32>) {
+    let ne = grid.n_elevation();
+    let na = grid.n_azimuth();
+    let ni = grid.n_inplane();
+    assert_eq!(h.len(), ne * na * ni * n_p, "histogram size");
+    if n_p == 0 {
+        return;
+    }
+    let taps = kernel.len();
+    let r = taps / 2;
+    let row_len = ni * n_p;
+    let slab = na * row_len;
+    // wrap-around source offsets per output index, `taps` each
+    let wrapped = |len: usize, unit: usize| -> Vec<usize> {
+        (0..len)
+            .flat_map(|i| {
+                (0..taps).map(move |k| (i as isize + k as isize - r as isize).rem_euclid(len as isize) as usize * unit)
+            })
+            .collect()
+    };
+    let inplane_offsets = wrapped(ni, n_p);
+    let azimuth_offsets = wrapped(na, row_len);
+    // elevation: each source row spreads its mass over the rows that exist
+    let row_sum = |j: usize| -> f32 {
+        kernel
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| {
+                let e = j as isize - (*k as isize - r as isize);
+                e >= 0 && e < ne as isize
+            })
+            .map(|(_, w)| *w)
+            .sum()
+    };
+    let row_sums: Vec<f32> = (0..ne).map(row_sum).collect();
+    scratch.resize(h.len(), 0.0);
+    let src: &[f32] = h;
+    let blocks = (rayon::current_num_threads() * 2).clamp(1, ne);
+    let per = ne.div_ceil(blocks);
+    scratch.par_chunks_mut(per * slab).enumerate().for_each(|(t, out)| {
+        BLUR_WORK.with_borrow_mut(|work| {
+            // ring of `taps` in-plane and azimuth blurred slabs, plus one slab between the two
+            work.resize((taps + 1) * slab, 0.0);
+            let (ring, tmp) = work.split_at_mut(taps * slab);
+            let e0 = t * per;
+            let e1 = (e0 + per).min(ne);
+            let mut next = e0.saturating_sub(r);
+            let mut offsets = Vec::with_capacity(taps);
+            let mut w = Vec::with_capacity(taps);
+            for e in e0..e1 {
+                // source slabs up to e + r; slab j lives in slot j % taps (the slot it
+                // overwrites held slab j - taps < e - r, which no output from e on reads)
+                while next < (e + r + 1).min(ne) {
+                    let slot = &mut ring[(next % taps) * slab..(next % taps + 1) * slab];
+                    let src_slab = &src[next * slab..(next + 1) * slab];
+                    with_wide_simd(
+                        #[inline(always)]
+                        || {
+                            for (a, tmp_row) in tmp.chunks_mut(row_len).enumerate() {
+                                let src_row = &src_slab[a * row_len..(a + 1) * row_len];
+                                for (i, dst) in tmp_row.chunks_mut(n_p).enumerate() {
+                                    weighted_rows(dst, src_row, &inplane_offsets[i * taps..(i + 1) * taps], kernel);
+                                }
+                            }
+                            for (a, dst) in slot.chunks_mut(row_len).enumerate() {
+                                weighted_rows(dst, tmp, &azimuth_offsets[a * taps..(a + 1) * taps], kernel);
+                            }
+                        },
+                    );
+                    next += 1;
+                }
+                offsets.clear();
+                w.clear();
+                for (k, &wk) in kernel.iter().enumerate() {
+                    let j = e as isize + k as isize - r as isize;
+                    if j < 0 || j >= ne as isize {
+                        continue;
+                    }
+                    let j = j as usize;
+                    offsets.push((j % taps) * slab);
+                    w.push(wk / row_sums[j]);
+                }
+                let dst = &mut out[(e - e0) * slab..(e - e0 + 1) * slab];
+                with_wide_simd(
+                    #[inline(always)]
+                    || {
+                        // row by row, so that the offsets stay those of whole rows
+                        for (a, dst_row) in dst.chunks_mut(row_len).enumerate() {
+                            let base = a * row_len;
+                            let ring_rows: &[f32] = &ring[base..];
+                            weighted_rows(dst_row, ring_rows, &offsets, &w);
+                        }
+                    },
+                );
+            }
+        })
+    });
+    std::mem::swap(h, scratch);
+}
+
+/// The straightforward blur (one tap at a time, each into memory): the reference that tests
+/// and `benches/kernels.rs` compare [`blur`] with.
+pub fn blur_reference(grid: &RotationGrid, h: &mut Vec<f32>, n_p: usize, kernel: &[f32], scratch: &mut Vec<f32>) {
     let ne = grid.n_elevation();
     let na = grid.n_azimuth();
     let ni = grid.n_inplane();
@@ -206,6 +446,15 @@ pub fn blur(grid: &RotationGrid, h: &mut Vec<f32>, n_p: usize, kernel: &[f32], s
     });
 }
 
+/// `t.floor()` for `|t| < 2^22`, with float operations only: without SSE4.1 (the default
+/// x86-64 target) `floor` is a library call per lane, which kept [`fast_exp`]'s loops scalar.
+#[inline(always)]
+fn floor_small(t: f32) -> f32 {
+    const ROUND: f32 = 12_582_912.0; // 1.5 * 2^23: adding and subtracting it rounds to an integer
+    let r = (t + ROUND) - ROUND;
+    if r > t { r - 1.0 } else { r }
+}
+
 /// `exp(x)` for `x <= 0` in f32, branch-free so that loops over it vectorise (relative error
 /// below 1e-5 on [-87, 0], clamped below -87). The fused update evaluates 21 million of these per
 /// object and step; the library `expf` is a scalar call.
@@ -213,7 +462,7 @@ pub fn blur(grid: &RotationGrid, h: &mut Vec<f32>, n_p: usize, kernel: &[f32], s
 pub fn fast_exp(x: f32) -> f32 {
     let x = x.max(-87.0);
     let t = x * std::f32::consts::LOG2_E;
-    let i = t.floor();
+    let i = floor_small(t);
     let f = t - i; // [0, 1)
     // 2^f on [0, 1): degree-6 polynomial (Taylor of e^(f ln 2) is accurate enough here)
     let l = std::f32::consts::LN_2;
@@ -221,6 +470,161 @@ pub fn fast_exp(x: f32) -> f32 {
     let p = 1.0 + y * (1.0 + y * (0.5 + y * (1.0 / 6.0 + y * (1.0 / 24.0 + y * (1.0 / 120.0 + y * (1.0 / 720.0))))));
     let bits = ((i as i32 + 127).max(0) as u32) << 23;
     p * f32::from_bits(bits)
+}
+
+/// One view of the fused update: its evidence and its pull map (histogram bin `b` reads the
+/// view's bin `map[b]`; `None`: the identity).
+pub type FusedView<'a> = (&'a ViewEvidence, Option<&'a [u32]>);
+
+/// Bins per task of the fused passes (the per-particle sums are f32 within a chunk, f64 across).
+const FUSE_CHUNK_BINS: usize = 1024;
+
+/// The source bin of histogram bin `b` in a view.
+#[inline(always)]
+fn source_bin(map: Option<&[u32]>, b: usize) -> usize {
+    match map {
+        Some(m) => m[b] as usize,
+        None => b,
+    }
+}
+
+/// The fused log-likelihood of all views at histogram bin `b`, into `f` (`n` values).
+#[inline(always)]
+fn fused_row(views: &[FusedView], b: usize, n: usize, f: &mut [f32]) {
+    for (v, (ev, map)) in views.iter().enumerate() {
+        let s = source_bin(*map, b) * n;
+        ev.loglik_row(&ev.sim[s..s + n], f, v == 0);
+    }
+}
+
+/// Bins ahead whose similarity rows are prefetched: a pulled row lies anywhere in its view's
+/// array, so without this every bin waits for its rows from memory (one bin is ~1,500
+/// instructions, more than the out-of-order window, so the next rows' loads would not start).
+const PREFETCH_BINS: usize = 4;
+
+/// Asks the cache for the rows that histogram bin `b` will read.
+#[inline(always)]
+fn prefetch_rows(views: &[FusedView], b: usize, n: usize, n_bins: usize) {
+    if b >= n_bins {
+        return;
+    }
+    for (ev, map) in views {
+        if map.is_some() {
+            let s = source_bin(*map, b) * n;
+            prefetch(&ev.sim[s..s + n]);
+        }
+    }
+}
+
+/// A hint to load `data` into the cache (no effect on results; a no-op off x86-64).
+#[inline(always)]
+fn prefetch(data: &[f32]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+        for line in data.chunks(16) {
+            // SAFETY: a prefetch never faults and changes no state visible to the program; the
+            // intrinsic is `unsafe` only because of its target feature, SSE, which every
+            // x86-64 CPU has.
+            #[allow(unsafe_code)] // the one exception (see Cargo.toml's lints)
+            unsafe {
+                _mm_prefetch::<_MM_HINT_T0>(line.as_ptr().cast::<i8>());
+            }
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = data;
+}
+
+/// Per particle, the largest fused log-likelihood over all bins (only needed when the sum of
+/// the views' floors could leave `exp`'s range).
+pub fn fused_loglik_max(views: &[FusedView], n: usize, n_bins: usize) -> Vec<f32> {
+    (0..n_bins.div_ceil(FUSE_CHUNK_BINS))
+        .into_par_iter()
+        .map(|c| {
+            with_wide_simd(
+                #[inline(always)]
+                || {
+                    let mut m = vec![f32::NEG_INFINITY; n];
+                    let mut f = vec![0f32; n];
+                    for b in c * FUSE_CHUNK_BINS..((c + 1) * FUSE_CHUNK_BINS).min(n_bins) {
+                        prefetch_rows(views, b + PREFETCH_BINS, n, n_bins);
+                        fused_row(views, b, n, &mut f);
+                        for (a, v) in m.iter_mut().zip(&f) {
+                            *a = a.max(*v);
+                        }
+                    }
+                    m
+                },
+            )
+        })
+        .reduce(
+            || vec![f32::NEG_INFINITY; n],
+            |mut a, b| {
+                for (x, y) in a.iter_mut().zip(b) {
+                    *x = x.max(y);
+                }
+                a
+            },
+        )
+}
+
+/// The measurement update of every particle's histogram by every view, in ONE pass over the
+/// bins (Eq. 6 and the marginal of Eq. 7): for histogram bin `b` and particle `p`,
+/// `f = sum_v ll_v(map_v[b], p)` (each view's [`ViewEvidence::loglik_row`], pulled through its
+/// map), `hist[b][p] = max(hist[b][p], floor_rel * volume(b)) * exp(f - fmax[p])`. Returns
+/// each particle's sum of the new histogram (f32 within 1,024-bin chunks, f64 across).
+/// Same arithmetic, in the same order, as [`crate::tracker::observation::add_loglik`] per view
+/// followed by one pass over the fused array, without writing or reading that array.
+pub fn fuse_update(
+    hist: &mut [f32],
+    views: &[FusedView],
+    n: usize,
+    tables: &GridTables,
+    floor_rel: f32,
+    fmax: &[f32],
+) -> Vec<f64> {
+    assert_eq!(hist.len(), tables.grid.len() * n, "histogram size");
+    assert_eq!(fmax.len(), n, "fmax size");
+    if n == 0 {
+        return Vec::new();
+    }
+    hist.par_chunks_mut(n * FUSE_CHUNK_BINS)
+        .enumerate()
+        .map(|(c, hc)| {
+            with_wide_simd(
+                #[inline(always)]
+                || {
+                    let mut acc = vec![0f32; n];
+                    let mut f = vec![0f32; n];
+                    let n_bins = tables.grid.len();
+                    for r in 0..PREFETCH_BINS {
+                        prefetch_rows(views, c * FUSE_CHUNK_BINS + r, n, n_bins);
+                    }
+                    for (r, hrow) in hc.chunks_mut(n).enumerate() {
+                        let b = c * FUSE_CHUNK_BINS + r;
+                        prefetch_rows(views, b + PREFETCH_BINS, n, n_bins);
+                        fused_row(views, b, n, &mut f);
+                        let floor = floor_rel * tables.volume(b) as f32;
+                        for (((h, f), m), a) in hrow.iter_mut().zip(&f).zip(fmax).zip(acc.iter_mut()) {
+                            let v = h.max(floor) * fast_exp(f - m);
+                            *h = v;
+                            *a += v;
+                        }
+                    }
+                    acc.into_iter().map(f64::from).collect::<Vec<f64>>()
+                },
+            )
+        })
+        .reduce(
+            || vec![0f64; n],
+            |mut a, b| {
+                for (x, y) in a.iter_mut().zip(b) {
+                    *x += y;
+                }
+                a
+            },
+        )
 }
 
 /// Gathers `src` (bin-major, `n_p` per bin) through a pull map and adds it into `dst`:
@@ -309,6 +713,28 @@ mod tests {
     }
 
     #[test]
+    fn floor_small_is_floor() {
+        let mut t = -300.0f32;
+        while t < 300.0 {
+            assert_eq!(floor_small(t), t.floor(), "{t}");
+            t += 0.000_913;
+        }
+        for t in [
+            0.0f32,
+            -1.0,
+            -125.5,
+            -0.5,
+            0.5,
+            -1e-30,
+            1e-30,
+            4_194_303.5,
+            -4_194_303.5,
+        ] {
+            assert_eq!(floor_small(t), t.floor(), "{t}");
+        }
+    }
+
+    #[test]
     fn fast_exp_is_accurate() {
         let mut x = -87.0f32;
         while x <= 0.0 {
@@ -318,6 +744,134 @@ mod tests {
             x += 0.0137;
         }
         assert_eq!(fast_exp(-200.0), fast_exp(-87.0));
+    }
+
+    #[test]
+    fn gemm_nt_matches_the_plain_product() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        for (m, n, kd) in [(7, 37, 13), (110, 300, 128), (1, 1, 1)] {
+            let lhs: Vec<f32> = (0..m * kd).map(|_| rng.random::<f32>() - 0.5).collect();
+            let rhs: Vec<f32> = (0..n * kd).map(|_| rng.random::<f32>() - 0.5).collect();
+            let mut dst = vec![f32::NAN; m * n];
+            gemm_nt(&mut dst, &lhs, &rhs, m, n, kd);
+            for b in 0..n {
+                for p in 0..m {
+                    let want: f32 = (0..kd).map(|k| lhs[p * kd + k] * rhs[b * kd + k]).sum();
+                    assert!((dst[b * m + p] - want).abs() < 1e-4, "{m}x{n}x{kd} at ({b},{p})");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn match_best_finds_each_particles_best_bin() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(12);
+        let (n, kd, nb) = (9, 16, 2500); // more than two chunks of bins
+        let mut book: Vec<f32> = (0..nb * kd).map(|_| rng.random::<f32>() - 0.5).collect();
+        crate::tracker::encoder::normalise_rows(&mut book, kd);
+        let mut codes: Vec<f32> = (0..n * kd).map(|_| rng.random::<f32>() - 0.5).collect();
+        // particle 0 equals bin 1,700 exactly; particle 1 is all zeros (every bin ties at 0)
+        codes[..kd].copy_from_slice(&book[1700 * kd..1701 * kd]);
+        codes[kd..2 * kd].fill(0.0);
+        crate::tracker::encoder::normalise_rows(&mut codes, kd);
+        let mut out = Vec::new();
+        let (mx, arg) = match_best(&codes, &book, n, kd, &mut out);
+        assert_eq!(out.len(), nb * n);
+        for p in 0..n {
+            let (mut wm, mut wa) = (f32::NEG_INFINITY, 0);
+            for b in 0..nb {
+                let v = out[b * n + p];
+                if v > wm {
+                    (wm, wa) = (v, b);
+                }
+            }
+            assert_eq!(mx[p], wm, "particle {p}");
+            assert_eq!(arg[p] as usize, wa, "particle {p}");
+        }
+        assert_eq!(arg[0], 1700);
+        assert!((mx[0] - 1.0).abs() < 1e-5);
+        assert_eq!((arg[1], mx[1]), (0, 0.0));
+    }
+
+    #[test]
+    fn fused_update_matches_the_per_view_reference() {
+        use crate::tracker::observation::add_loglik;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(13);
+        let grid = RotationGrid::new(15).unwrap();
+        let tables = GridTables::new(grid);
+        let (n, nb) = (6, grid.len());
+        let view = |rng: &mut rand_chacha::ChaCha8Rng, best: f32| ViewEvidence {
+            sim: (0..nb * n).map(|_| rng.random::<f32>() * 2.0 - 1.0).collect(),
+            inv_best: (0..n).map(|p| if p == 2 { 0.0 } else { 1.0 / best }).collect(),
+            k: -0.5 / (0.06f32 * 0.06),
+            floor: -12.0,
+            depth_log: vec![0.0; n],
+            best_similarity: best,
+            valid: vec![true; n],
+            crops_s: 0.0,
+            encoding_s: 0.0,
+            matching_s: 0.0,
+            likelihoods_s: 0.0,
+        };
+        let views = [view(&mut rng, 0.97), view(&mut rng, 0.99), view(&mut rng, 0.9)];
+        let map1 = tables.pull_map(&UnitQuaternion::from_euler_angles(0.3, -0.2, 1.1));
+        let map2 = tables.pull_map(&UnitQuaternion::from_euler_angles(-1.0, 0.4, 0.2));
+        let fused_views: Vec<FusedView> = vec![(&views[0], None), (&views[1], Some(&map1)), (&views[2], Some(&map2))];
+        let prior: Vec<f32> = (0..nb * n).map(|_| rng.random::<f32>() * 1e-3).collect();
+        let floor_rel = 0.2f32;
+        for fmax in [vec![0f32; n], fused_loglik_max(&fused_views, n, nb)] {
+            // reference: one add_loglik per view into a fused array, then one plain pass
+            let mut fused = vec![0f32; nb * n];
+            for (v, (ev, map)) in fused_views.iter().enumerate() {
+                add_loglik(&mut fused, ev, *map, n, v == 0);
+            }
+            let mut want = prior.clone();
+            let mut want_sums = vec![0f64; n];
+            for b in 0..nb {
+                let floor = floor_rel * tables.volume(b) as f32;
+                for p in 0..n {
+                    let h = &mut want[b * n + p];
+                    *h = h.max(floor) * fast_exp(fused[b * n + p] - fmax[p]);
+                    want_sums[p] += *h as f64;
+                }
+            }
+            let mut got = prior.clone();
+            let sums = fuse_update(&mut got, &fused_views, n, &tables, floor_rel, &fmax);
+            assert_eq!(got, want, "the same arithmetic in the same order");
+            for p in 0..n {
+                assert!((sums[p] - want_sums[p]).abs() <= 1e-5 * want_sums[p], "sum {p}");
+            }
+        }
+        // the max pass finds each particle's largest fused value
+        let m = fused_loglik_max(&fused_views, n, nb);
+        let mut fused = vec![0f32; nb * n];
+        for (v, (ev, map)) in fused_views.iter().enumerate() {
+            add_loglik(&mut fused, ev, *map, n, v == 0);
+        }
+        for p in 0..n {
+            let want = (0..nb).map(|b| fused[b * n + p]).fold(f32::NEG_INFINITY, f32::max);
+            assert_eq!(m[p], want);
+        }
+    }
+
+    #[test]
+    fn blur_matches_the_straightforward_version() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(14);
+        // 30 degrees: 12 azimuth rows (tasks of 6 rows); 110 particles: 6 full lanes and a tail
+        for (step, n_p, radius) in [(30, 110, 2), (15, 3, 1), (45, 17, 3)] {
+            let grid = RotationGrid::new(step).unwrap();
+            let h0: Vec<f32> = (0..grid.len() * n_p).map(|_| rng.random::<f32>()).collect();
+            let k = gaussian_kernel(radius, 1.0);
+            let (mut a, mut b) = (h0.clone(), h0.clone());
+            let (mut sa, mut sb) = (Vec::new(), Vec::new());
+            blur(&grid, &mut a, n_p, &k, &mut sa);
+            blur_reference(&grid, &mut b, n_p, &k, &mut sb);
+            assert_eq!(a, b, "grid {step}, {n_p} particles, radius {radius}");
+            // and again with the buffers in use
+            blur(&grid, &mut a, n_p, &k, &mut sa);
+            blur_reference(&grid, &mut b, n_p, &k, &mut sb);
+            assert_eq!(a, b);
+        }
     }
 
     #[test]

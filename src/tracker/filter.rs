@@ -25,11 +25,11 @@ pub use snapshot::{SNAPSHOT_VERSION, TrackPrior, TrackSnapshot, TrackerSnapshot}
 
 use crate::geometry::{Pose, PoseSamples};
 use crate::mesh::Mesh;
-use crate::tracker::bins::{GridTables, blur, fast_exp, gaussian_kernel};
+use crate::tracker::bins::{FusedView, GridTables, blur, fuse_update, fused_loglik_max, gaussian_kernel};
 use crate::tracker::codebook::Codebook;
 use crate::tracker::estimate::{EstimateConfig, ParticleSet, summarise_rotation};
 use crate::tracker::motion::{OdometryNoise, brownian, move_with_odometry};
-use crate::tracker::observation::{ObservationConfig, ViewImage, add_loglik, observe_view};
+use crate::tracker::observation::{ObservationConfig, ViewEvidence, ViewImage, observe_view};
 use crate::tracker::{
     CameraFrame, CameraMount, Detection, Estimate, ParticleView, RobotOdometry, StepReport, Track, TrackStatus,
     TrackerError,
@@ -168,8 +168,8 @@ pub struct Tracker {
     rng: rand_chacha::ChaCha8Rng,
     world_from_reference: Pose,
     last_odometry: Option<RobotOdometry>,
-    fused: Vec<f32>,
-    sim: Vec<f32>,
+    /// Reusable similarity buffers, one per gated view of a step (`n x bins` f32 each).
+    sims: Vec<Vec<f32>>,
     scratch: Vec<f32>,
     stamp_ns: i64,
 }
@@ -195,8 +195,7 @@ impl Tracker {
             rng: rand_chacha::ChaCha8Rng::seed_from_u64(seed),
             world_from_reference,
             last_odometry: None,
-            fused: Vec::new(),
-            sim: Vec::new(),
+            sims: Vec::new(),
             scratch: Vec::new(),
             stamp_ns: 0,
         }
@@ -629,8 +628,6 @@ impl Tracker {
         let n = self.states[ti].n();
         let nb = tables.grid.len();
         let obs_cfg = self.config.observation;
-        // sized, not zeroed: the first gated view assigns
-        self.fused.resize(nb * n, 0.0);
         let mut depth_log = vec![0f32; n];
         let mut best = f32::NEG_INFINITY;
         let mut seen_by = Vec::new();
@@ -640,6 +637,8 @@ impl Tracker {
         let mean_hist = reference_from_hist
             .inverse_transform_point(&Point3::from(mean_ref))
             .coords;
+        // every gated view's evidence, with its pull map; fused below in one pass
+        let mut evidence: Vec<(ViewEvidence, Option<Arc<Vec<u32>>>)> = Vec::new();
         for (frame, view_from_ref, _ci) in views {
             let positions: Vec<Vector3<f64>> = self.states[ti]
                 .positions
@@ -657,10 +656,10 @@ impl Tracker {
                 depth: &frame.depth,
                 color: frame.color.as_ref(),
             };
-            let mut sim = std::mem::take(&mut self.sim);
+            let mut sim = self.sims.pop().unwrap_or_default();
             let ev = observe_view(&codebook, &img, &positions, &obs_cfg, &mut sim);
             let Some(ev) = ev else {
-                self.sim = sim;
+                self.sims.push(sim);
                 continue;
             };
             report.timings.crops_s += ev.crops_s;
@@ -675,15 +674,15 @@ impl Tracker {
                 * view_from_ref.rotation
                 * reference_from_hist.rotation
                 * crate::geometry::ray_rotation(&mean_hist);
-            if q.angle() < 1e-9 {
-                add_loglik(&mut self.fused, &ev, None, n, seen_by.len() == 1);
+            let map = if q.angle() < 1e-9 {
+                None
             } else {
                 let cache = &mut self.states[ti].map_cache;
                 let cached = cache
                     .iter()
                     .find(|(c, cq, _)| c == &frame.camera && cq.angle_to(&q) < MAP_REUSE_RAD)
                     .map(|(_, _, m)| m.clone());
-                let map = match cached {
+                Some(match cached {
                     Some(m) => m,
                     None => {
                         let m = Arc::new(tables.pull_map(&q));
@@ -691,13 +690,12 @@ impl Tracker {
                         cache.push((frame.camera.clone(), q, m.clone()));
                         m
                     }
-                };
-                add_loglik(&mut self.fused, &ev, Some(&map), n, seen_by.len() == 1);
-            }
+                })
+            };
             for (d, l) in depth_log.iter_mut().zip(&ev.depth_log) {
                 *d += l;
             }
-            self.sim = ev.sim;
+            evidence.push((ev, map));
             report.timings.fusion_s += t0.elapsed().as_secs_f64();
         }
         let t0 = Instant::now();
@@ -709,6 +707,10 @@ impl Tracker {
         let mut pending_scale: Option<Vec<f32>> = None;
         if had_evidence {
             let s = &mut self.states[ti];
+            let fused_views: Vec<FusedView> = evidence
+                .iter()
+                .map(|(ev, m)| (ev, m.as_ref().map(|m| m.as_slice())))
+                .collect();
             // per particle max of the fused log-likelihood, for exp's range; with floored views
             // the sum cannot go below `floor * views` (exp of that is well inside f32), so the
             // pass is skipped and 0 (the largest possible value) used
@@ -716,37 +718,17 @@ impl Tracker {
             let fmax = if worst > -80.0 {
                 vec![0f32; n]
             } else {
-                column_max(&self.fused, n)
+                fused_loglik_max(&fused_views, n, nb)
             };
-            let floor_rel = self.config.prior_floor_rel as f32;
-            let fused = &self.fused;
-            let sums: Vec<f64> = s
-                .hist
-                .par_chunks_mut(n * 1024)
-                .zip(fused.par_chunks(n * 1024))
-                .enumerate()
-                .map(|(c, (hc, fc))| {
-                    // f32 sums over 1,024 bins, f64 across chunks
-                    let mut acc = vec![0f32; n];
-                    for (k, (hrow, frow)) in hc.chunks_mut(n).zip(fc.chunks(n)).enumerate() {
-                        let floor = floor_rel * tables.volume(c * 1024 + k) as f32;
-                        for (((h, f), m), a) in hrow.iter_mut().zip(frow).zip(&fmax).zip(acc.iter_mut()) {
-                            let v = h.max(floor) * fast_exp(f - m);
-                            *h = v;
-                            *a += v;
-                        }
-                    }
-                    acc.into_iter().map(f64::from).collect::<Vec<f64>>()
-                })
-                .reduce(
-                    || vec![0f64; n],
-                    |mut a, b| {
-                        for (x, y) in a.iter_mut().zip(b) {
-                            *x += y;
-                        }
-                        a
-                    },
-                );
+            // prior times every view's likelihood, and the marginals, in one pass over the bins
+            let sums = fuse_update(
+                &mut s.hist,
+                &fused_views,
+                n,
+                &tables,
+                self.config.prior_floor_rel as f32,
+                &fmax,
+            );
             // new log weights: old + log marginal (Eq. 7) + depth term
             let mut logw: Vec<f64> = (0..n)
                 .map(|p| {
@@ -767,6 +749,8 @@ impl Tracker {
                     .collect(),
             );
         }
+        // the similarity buffers go back to the pool for the next view, track and step
+        self.sims.extend(evidence.into_iter().map(|(ev, _)| ev.sim));
         report.timings.fusion_s += t0.elapsed().as_secs_f64();
         // component floor
         floor_components(&mut self.states[ti], self.config.min_component_weight);
@@ -894,21 +878,34 @@ impl Tracker {
             }
         }
         let positions: Vec<Vector3<f64>> = src_idx.iter().map(|&i| s.positions[i]).collect();
-        self.scratch.resize(s.hist.len(), 0.0);
-        self.scratch
-            .par_chunks_mut(n)
-            .zip(s.hist.par_chunks(n))
-            .for_each(|(dst, src)| {
-                for (d, &i) in dst.iter_mut().zip(&src_idx) {
-                    *d = src[i] * scale.map_or(1.0, |k| k[i]);
-                }
-            });
+        // each new particle's histogram: its source's, times the source's normalisation
+        let new_scale: Vec<f32> = src_idx.iter().map(|&i| scale.map_or(1.0, |k| k[i])).collect();
+        resample_histograms(&mut self.scratch, &s.hist, &src_idx, &new_scale);
         std::mem::swap(&mut self.scratch, &mut s.hist);
         s.positions = positions;
         s.weights = new_w;
         s.sources = new_sources;
         normalise(&mut s.weights);
     }
+}
+
+/// `dst[b][j] = src[b][src_idx[j]] * scale[j]` for every bin `b` (bin-major, `src_idx.len()`
+/// particles per bin in both), in chunks of 1,024 bins over all threads.
+fn resample_histograms(dst: &mut Vec<f32>, src: &[f32], src_idx: &[usize], scale: &[f32]) {
+    let n = src_idx.len();
+    dst.resize(src.len(), 0.0);
+    if n == 0 {
+        return;
+    }
+    dst.par_chunks_mut(n * 1024)
+        .zip(src.par_chunks(n * 1024))
+        .for_each(|(dc, sc)| {
+            for (drow, srow) in dc.chunks_mut(n).zip(sc.chunks(n)) {
+                for ((d, &i), &k) in drow.iter_mut().zip(src_idx).zip(scale) {
+                    *d = srow[i] * k;
+                }
+            }
+        });
 }
 
 fn normalise(w: &mut [f64]) {
@@ -921,28 +918,6 @@ fn normalise(w: &mut [f64]) {
         let u = 1.0 / w.len().max(1) as f64;
         w.fill(u);
     }
-}
-
-fn column_max(h: &[f32], n: usize) -> Vec<f32> {
-    h.par_chunks(n * 1024)
-        .map(|c| {
-            let mut m = vec![f32::NEG_INFINITY; n];
-            for row in c.chunks(n) {
-                for (a, v) in m.iter_mut().zip(row) {
-                    *a = a.max(*v);
-                }
-            }
-            m
-        })
-        .reduce(
-            || vec![f32::NEG_INFINITY; n],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    *x = x.max(y);
-                }
-                a
-            },
-        )
 }
 
 /// Floors each component's total weight at `min_weight` (then renormalises).
@@ -980,6 +955,22 @@ mod tests {
         fn assert_send_sync<T: Send + Sync>() {}
         assert_send_sync::<Tracker>();
         assert_send_sync::<Codebook>();
+    }
+
+    #[test]
+    fn resampled_histograms_are_the_scaled_sources() {
+        let (n, nb) = (5, 2100);
+        let src: Vec<f32> = (0..n * nb).map(|i| (i % 97) as f32 * 0.5).collect();
+        let idx = vec![4, 0, 0, 2, 4];
+        let scale = vec![2.0, 1.0, 0.5, 3.0, 2.0];
+        let mut dst = Vec::new();
+        resample_histograms(&mut dst, &src, &idx, &scale);
+        assert_eq!(dst.len(), src.len());
+        for b in 0..nb {
+            for j in 0..n {
+                assert_eq!(dst[b * n + j], src[b * n + idx[j]] * scale[j], "bin {b}, particle {j}");
+            }
+        }
     }
 
     #[test]

@@ -13,13 +13,11 @@
 use crate::camera::{ColorImage, DepthImage, Intrinsics};
 use crate::tracker::codebook::Codebook;
 use crate::tracker::encoder::{CropParams, Encoder, normalise_rows, sample_crop};
-use nalgebra::{DMatrixView, DMatrixViewMut, Vector3};
+use nalgebra::Vector3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
-/// Bins per matching task.
-const MATCH_CHUNK_BINS: usize = 4096;
 /// A crop with fewer valid depth cells than this share is not used.
 const MIN_VALID_SHARE: f64 = 0.25;
 
@@ -153,24 +151,11 @@ pub fn encode_particles(
 }
 
 /// Cosine similarities of `n` unit codes (row-major `n x k`) with every codebook code, into
-/// `out` (bin-major: `out[b * n + p]`), in chunks of bins over all threads.
-pub fn match_codes(codebook: &Codebook, codes: &[f32], n: usize, out: &mut Vec<f32>) {
-    let kd = codebook.code_dim();
-    let nb = codebook.n_bins();
-    out.resize(nb * n, 0.0);
-    if n == 0 {
-        return;
-    }
-    let qt = DMatrixView::from_slice_with_strides(codes, n, kd, kd, 1);
-    out.par_chunks_mut(MATCH_CHUNK_BINS * n)
-        .enumerate()
-        .for_each(|(c, chunk)| {
-            let b0 = c * MATCH_CHUNK_BINS;
-            let len = chunk.len() / n;
-            let cv = DMatrixView::from_slice(&codebook.codes[b0 * kd..(b0 + len) * kd], kd, len);
-            let mut sv = DMatrixViewMut::from_slice(chunk, n, len);
-            sv.gemm(1.0, &qt, &cv, 0.0);
-        });
+/// `out` (bin-major: `out[b * n + p]`), in chunks of bins over all threads; returns each
+/// particle's best similarity and the (lowest) bin where it is reached, computed while each
+/// chunk is still in cache (no extra pass over the `n x bins` array).
+pub fn match_codes(codebook: &Codebook, codes: &[f32], n: usize, out: &mut Vec<f32>) -> (Vec<f32>, Vec<u32>) {
+    crate::tracker::bins::match_best(codes, &codebook.codes, n, codebook.code_dim(), out)
 }
 
 /// The evidence of one view for particles at `positions_in_view_m`, or `None` when the view
@@ -189,30 +174,9 @@ pub fn observe_view(
         return None;
     }
     let t0 = Instant::now();
-    match_codes(codebook, &codes, n, sim);
+    let (mx, arg) = match_codes(codebook, &codes, n, sim);
     let matching_s = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
-    // best similarity per particle (a vectorised max), then each particle's best bin
-    let mx = sim
-        .par_chunks(n * 1024)
-        .map(|chunk| {
-            let mut m = vec![f32::NEG_INFINITY; n];
-            for row in chunk.chunks(n) {
-                for (a, v) in m.iter_mut().zip(row) {
-                    *a = a.max(*v);
-                }
-            }
-            m
-        })
-        .reduce(
-            || vec![f32::NEG_INFINITY; n],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    *x = x.max(y);
-                }
-                a
-            },
-        );
     let best = mx
         .iter()
         .zip(&valid)
@@ -222,30 +186,7 @@ pub fn observe_view(
     if best.is_nan() || best < config.gate_similarity {
         return None;
     }
-    let arg = sim
-        .par_chunks(n * 1024)
-        .enumerate()
-        .map(|(c, chunk)| {
-            let mut a = vec![u32::MAX; n];
-            for (r, row) in chunk.chunks(n).enumerate() {
-                let b = (c * 1024 + r) as u32;
-                for ((ai, v), m) in a.iter_mut().zip(row).zip(&mx) {
-                    *ai = if *v == *m { b } else { *ai };
-                }
-            }
-            a
-        })
-        .reduce(
-            || vec![u32::MAX; n],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    if *x == u32::MAX {
-                        *x = y;
-                    }
-                }
-                a
-            },
-        );
+    // each particle's best bin (0 when none: a crop of zeros)
     let arg: Vec<usize> = arg
         .into_iter()
         .map(|a| if a == u32::MAX { 0 } else { a as usize })
@@ -284,12 +225,39 @@ pub fn observe_view(
     })
 }
 
-/// Adds a view's log-likelihood into `dst` (bin-major, `n` per bin), pulling through `map`
-/// (`dst[b] += ll[map[b]]`; `None`: the identity): `max(k (1 - c / c_max)^2, floor)`.
-/// With `assign`, `dst` is overwritten instead (the first view of a step: no zeroing pass).
+/// The log-likelihood one view gives a bin, from the cosine similarity `c` of the particle's
+/// crop to the bin's code: `max(k (1 - c inv)^2, floor)` with `inv = 1 / c_max` and
+/// `k = -1 / (2 sigma^2)`. The one place of the formula: [`add_loglik`] and the fused update
+/// ([`crate::tracker::bins::fuse_update`]) both call it.
+#[inline(always)]
+pub fn view_loglik(c: f32, inv: f32, k: f32, floor: f32) -> f32 {
+    let x = 1.0 - c * inv;
+    (k * x * x).max(floor)
+}
+
+impl ViewEvidence {
+    /// This view's log-likelihood ([`view_loglik`]) of every particle at one view bin, whose
+    /// similarities are `sim_row` (`n` values), written into `out` (`assign`) or added to it.
+    #[inline(always)]
+    pub fn loglik_row(&self, sim_row: &[f32], out: &mut [f32], assign: bool) {
+        let (k, floor) = (self.k, self.floor);
+        if assign {
+            for ((d, s), i) in out.iter_mut().zip(sim_row).zip(&self.inv_best) {
+                *d = view_loglik(*s, *i, k, floor);
+            }
+        } else {
+            for ((d, s), i) in out.iter_mut().zip(sim_row).zip(&self.inv_best) {
+                *d += view_loglik(*s, *i, k, floor);
+            }
+        }
+    }
+}
+
+/// Adds a view's log-likelihood ([`view_loglik`]) into `dst` (bin-major, `n` per bin), pulling
+/// through `map` (`dst[b] += ll[map[b]]`; `None`: the identity). With `assign`, `dst` is
+/// overwritten instead (the first view of a step: no zeroing pass). The fused update does this
+/// for all views at once; this is its plain reference.
 pub fn add_loglik(dst: &mut [f32], ev: &ViewEvidence, map: Option<&[u32]>, n: usize, assign: bool) {
-    let (k, floor) = (ev.k, ev.floor);
-    let inv = &ev.inv_best;
     dst.par_chunks_mut(n * 1024).enumerate().for_each(|(c, chunk)| {
         let b0 = c * 1024;
         for (r, row) in chunk.chunks_mut(n).enumerate() {
@@ -297,18 +265,7 @@ pub fn add_loglik(dst: &mut [f32], ev: &ViewEvidence, map: Option<&[u32]>, n: us
                 Some(m) => m[b0 + r] as usize,
                 None => b0 + r,
             };
-            let src = &ev.sim[src_b * n..(src_b + 1) * n];
-            if assign {
-                for ((d, s), i) in row.iter_mut().zip(src).zip(inv) {
-                    let x = 1.0 - s * i;
-                    *d = (k * x * x).max(floor);
-                }
-            } else {
-                for ((d, s), i) in row.iter_mut().zip(src).zip(inv) {
-                    let x = 1.0 - s * i;
-                    *d += (k * x * x).max(floor);
-                }
-            }
+            ev.loglik_row(&ev.sim[src_b * n..(src_b + 1) * n], row, assign);
         }
     });
 }
