@@ -1,7 +1,7 @@
 //! The tracker step's kernels alone, at the paper's size (110 particles, the full 37 x 72 x 72
 //! grid), each beside its plain reference: the blur, the fused update of three views, and the
-//! matching of 110 codes with each code's best bin (the `gemm` crate in chunks against
-//! nalgebra's GEMM in chunks followed by a separate max pass).
+//! matching of 110 codes with each code's best bin taken while each chunk is in cache (against
+//! the GEMM in chunks followed by a separate max pass).
 //!
 //! Run: `cargo bench --bench kernels -- --noplot`. Random data: no codebook or renderer needed.
 
@@ -107,7 +107,7 @@ fn kernels(c: &mut Criterion) {
     let book = random(nb * kd, &mut rng);
     let codes = random(N * kd, &mut rng);
     let mut out = Vec::new();
-    g.bench_function("match_best_gemm_crate_110_by_191808", |b| {
+    g.bench_function("match_best_110_by_191808", |b| {
         b.iter(|| black_box(match_best(&codes, &book, N, kd, &mut out)))
     });
     g.bench_function("match_nalgebra_then_max_110_by_191808", |b| {

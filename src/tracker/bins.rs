@@ -143,7 +143,7 @@ const MATCH_CHUNK_BINS: usize = 1024;
 /// returns each particle's best similarity and the lowest bin that reaches it (`u32::MAX`
 /// when none does, e.g. NaN codes).
 pub fn match_best(codes: &[f32], book: &[f32], n: usize, kd: usize, out: &mut Vec<f32>) -> (Vec<f32>, Vec<u32>) {
-    let nb = if kd == 0 { 0 } else { book.len() / kd };
+    let nb = book.len().checked_div(kd).unwrap_or(0);
     out.resize(nb * n, 0.0);
     if n == 0 || nb == 0 {
         return (vec![f32::NEG_INFINITY; n], vec![u32::MAX; n]);
