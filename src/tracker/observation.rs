@@ -41,7 +41,7 @@ pub struct ObservationConfig {
 impl Default for ObservationConfig {
     fn default() -> Self {
         Self {
-            sigma: 0.06,
+            sigma: crate::tracker::codebook::env_f64("PREGRASP_X_SIGMA", 0.06) as f32,
             loglik_floor: -12.0,
             gate_similarity: 0.55,
             depth_sigma_m: 0.015,
@@ -95,6 +95,7 @@ pub fn encode_particles(
     let n = positions_in_view_m.len();
     let side_m = codebook.crop_side_m();
     let box_m = codebook.box_m();
+    let suppress = codebook.config.suppress_plane;
     let k = view.intrinsics;
     let crops: Vec<(Vec<f32>, Vec<bool>, bool, f32)> = positions_in_view_m
         .par_iter()
@@ -120,6 +121,9 @@ pub fn encode_particles(
             // depth consistency (below) reads the raw cells; the encoder gets inpainted ones
             let raw_x = x[..f * f].to_vec();
             let raw_m = m[..f * f].to_vec();
+            if suppress {
+                crate::tracker::encoder::suppress_support_plane(&layout, &mut x, &m, view.color.is_some());
+            }
             crate::tracker::encoder::inpaint_depth(&layout, &mut x, &mut m, view.color.is_some());
             // depth check input: the central surface of the raw crop
             let score = crate::tracker::encoder::central_median_depth(&layout, &raw_x, &raw_m).unwrap_or(f32::NAN);
