@@ -66,13 +66,13 @@ impl Default for CodebookConfig {
             crop_margin: 1.2,
             code_dim: 128,
             use_color: true,
-            color_weight: env_f64("PREGRASP_X_CW", 0.7) as f32,
-            n_train: env_f64("PREGRASP_X_NTRAIN", 12000.0) as usize,
+            color_weight: 1.2,
+            n_train: 12_000,
             ridge_lambda_rel: 1e-3,
             seed: 7,
-            crop_jitter_rel: env_f64("PREGRASP_X_JITTER", 0.06),
-            support_plane_prob: env_f64("PREGRASP_X_PLANE", 0.5),
-            suppress_plane: env_f64("PREGRASP_X_SUPPRESS", 1.0) > 0.0,
+            crop_jitter_rel: 0.06,
+            support_plane_prob: 0.5,
+            suppress_plane: true,
         }
     }
 }
@@ -95,11 +95,6 @@ impl CodebookConfig {
             color_weight: self.color_weight,
         }
     }
-}
-
-// EXPERIMENT knobs (removed before commit)
-pub fn env_f64(name: &str, default: f64) -> f64 {
-    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
 }
 
 /// Renders many centred views of one object (the GPU renderer, or the CPU rasteriser).
@@ -355,8 +350,9 @@ impl Codebook {
 }
 
 /// A corrupted crop of view `view` at in-plane angle `theta`: shifted, rescaled, rotated within
-/// the bin, depth offset and noise, missing pixels, an occluder, background clutter, colour
-/// changes or no colour at all.
+/// the bin, depth offset and noise, missing pixels, an occluder, background clutter or a
+/// support plane the object rests on (then suppressed as observed crops are), colour changes
+/// or no colour at all.
 fn corrupt(
     layout: &FeatureLayout,
     view: &(DepthImage, Option<ColorImage>),

@@ -14,12 +14,19 @@
 //! Masked values are replaced by the mean of the clean templates before encoding (the
 //! least-informative value for a linear encoder).
 //!
+//! A support plane (table, floor) around the object is removed from observed crops before
+//! encoding ([`suppress_support_plane`]): at the object's depth it would otherwise read as
+//! object shape and colour, and a linear encoder does not learn to ignore it (measured on
+//! generated scenes: the true bin ranked 90th to 1,304th at the true position with the table
+//! in the crop, first without it).
+//!
 //! # The default encoder ([`LinearDenoisingEncoder`])
 //! PCA of the clean templates gives the codes (128-d by default, centred by the template mean
 //! so that cosine similarities are not all near 1). PCA of noisy copies would not denoise
 //! (independent noise adds a constant to the covariance), so the observation side is a
 //! *regression*: ridge regression from corrupted crops (noise, missing pixels, occluders,
-//! clutter, shifted and rescaled crops, colour changes) to the clean templates' codes.
+//! clutter, a support plane touching the object then suppressed as in observed crops, shifted
+//! and rescaled crops, colour changes) to the clean templates' codes.
 
 use crate::camera::{ColorImage, DepthImage};
 use crate::tracker::TrackerError;
@@ -269,7 +276,10 @@ pub fn inpaint_depth(layout: &FeatureLayout, x: &mut [f32], mask: &mut [bool], h
 /// - Fit: least median of squares over deterministic triples of ring cells, refined by least
 ///   squares on the inliers (`|r| < 2.5 sigma`, sigma from the median residual). Needs at least
 ///   40 % of the ring to be in-range depth and to agree with the plane, else nothing is done
-///   (no plane around the object: free space behind it reads far already).
+///   (no plane around the object: free space behind it reads far already; a table so steep
+///   that it saturates most of the ring is left to the encoder, which is trained on such crops:
+///   fitting those too measured worse, 75 against 58 degrees on the 16 generated sequences and
+///   3.7 against 1.8 cm on the real mug).
 /// - Test per cell: the residual to the plane averaged over the 3 x 3 neighbourhood (noise of
 ///   a single cell is large for far cameras) must not be in front of the plane by more than
 ///   `3 sigma / sqrt(neighbours)`. Where the camera gives colour, a cell within that band is
@@ -310,7 +320,10 @@ pub fn suppress_support_plane(layout: &FeatureLayout, x: &mut [f32], mask: &[boo
     let m = pts.len();
     let residuals = |pl: [f32; 3], out: &mut Vec<f32>| {
         out.clear();
-        out.extend(pts.iter().map(|(u, v, z, _)| (z - (pl[0] + pl[1] * u + pl[2] * v)).abs()));
+        out.extend(
+            pts.iter()
+                .map(|(u, v, z, _)| (z - (pl[0] + pl[1] * u + pl[2] * v)).abs()),
+        );
     };
     let mut buf = Vec::with_capacity(m);
     let mut best: Option<([f32; 3], f32)> = None;
@@ -468,7 +481,11 @@ pub fn suppress_support_plane(layout: &FeatureLayout, x: &mut [f32], mask: &[boo
 }
 
 /// The plane `z = a + b u + c v` through three points, `None` when they are collinear.
-fn plane_through(p: &(f32, f32, f32, usize), q: &(f32, f32, f32, usize), r: &(f32, f32, f32, usize)) -> Option<[f32; 3]> {
+fn plane_through(
+    p: &(f32, f32, f32, usize),
+    q: &(f32, f32, f32, usize),
+    r: &(f32, f32, f32, usize),
+) -> Option<[f32; 3]> {
     let m = nalgebra::Matrix3::new(1.0, p.0, p.1, 1.0, q.0, q.1, 1.0, r.0, r.1);
     let inv = m.try_inverse()?;
     let s = inv * nalgebra::Vector3::new(p.2, q.2, r.2);
@@ -721,7 +738,7 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_distr::{Distribution, Normal};
 
-    /// A 32 x 32 crop: a steep tilted table (depth grows 2 boxes across the crop, with noise)
+    /// A 32 x 32 crop: a tilted table (depth grows 0.9 box across the crop, with noise)
     /// and a block standing on it in the centre, in front of the table by 0.1..0.4 box.
     fn table_crop(with_color: bool, noise: f32, seed: u64) -> (FeatureLayout, Vec<f32>, Vec<bool>, Vec<bool>) {
         let layout = FeatureLayout {
@@ -738,11 +755,15 @@ mod tests {
         for i in 0..f {
             for j in 0..f {
                 let v = (i as f32 + 0.5) / f as f32 - 0.5;
-                let table = 0.5 - 2.0 * v; // nearer at the bottom of the image
+                let table = 0.5 - 0.9 * v; // nearer at the bottom of the image
                 let k = i * f + j;
                 let inside = (10..22).contains(&i) && (11..21).contains(&j);
                 object[k] = inside;
-                let z = if inside { table - 0.1 - 0.3 * (i as f32 - 10.0) / 12.0 } else { table };
+                let z = if inside {
+                    table - 0.1 - 0.3 * (i as f32 - 10.0) / 12.0
+                } else {
+                    table
+                };
                 x[k] = (z + n.sample(&mut rng)).clamp(0.0, 1.0);
             }
         }

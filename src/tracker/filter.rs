@@ -59,10 +59,6 @@ pub struct TrackerConfig {
     /// Prior floor per bin, relative to the bin's share of a uniform distribution.
     pub prior_floor_rel: f64,
     pub min_component_weight: f64,
-    /// Exponent of the particle weight's marginal, `(sum_b prior_b L_b^alpha)^(1 / alpha)`:
-    /// 1 is Eq. 7; larger values weigh a particle by how well its crop matches its best bins
-    /// rather than by the mass of a plateau of moderate matches.
-    pub weight_sharpness: f64,
     /// Initial pixel jitter as a share of the detection box side.
     pub init_uv_jitter_rel: f64,
     /// Initial depth jitter (m) plus this share of the object's diameter.
@@ -89,7 +85,6 @@ impl Default for TrackerConfig {
             blur_sigma_bins: 1.0,
             prior_floor_rel: 1e-3,
             min_component_weight: 0.02,
-            weight_sharpness: crate::tracker::codebook::env_f64("PREGRASP_X_ALPHA", 1.0),
             init_uv_jitter_rel: 0.1,
             init_depth_sigma_m: 0.03,
             association_margin_rel: 0.3,
@@ -749,16 +744,11 @@ impl Tracker {
                         a
                     },
                 );
-            // new log weights: old + log marginal (Eq. 7, sharpened: see `weight_sharpness`)
-            // + depth term
-            let alpha = self.config.weight_sharpness;
-            let log_marginal: Vec<f64> = if (alpha - 1.0).abs() > 1e-9 {
-                sharpened_log_marginal(&s.hist, fused, &fmax, n, alpha as f32)
-            } else {
-                sums.iter().map(|v| v.max(1e-300).ln()).collect()
-            };
+            // new log weights: old + log marginal (Eq. 7) + depth term
             let mut logw: Vec<f64> = (0..n)
-                .map(|p| s.weights[p].max(1e-300).ln() + log_marginal[p] + fmax[p] as f64 + depth_log[p] as f64)
+                .map(|p| {
+                    s.weights[p].max(1e-300).ln() + sums[p].max(1e-300).ln() + fmax[p] as f64 + depth_log[p] as f64
+                })
                 .collect();
             let m = logw.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
             for v in &mut logw {
@@ -921,38 +911,6 @@ fn normalise(w: &mut [f64]) {
         let u = 1.0 / w.len().max(1) as f64;
         w.fill(u);
     }
-}
-
-/// Per particle `(1 / alpha) ln sum_b prior_b L_b^alpha` (L relative to the per-particle max
-/// already taken out of `fused`), from the posterior `post_b = prior_b L_b` (`hist` after the
-/// update, unnormalised) as `sum_b post_b L_b^(alpha - 1)`; `fmax` is the per-particle
-/// maximum taken out of `fused` (added back by the caller). `alpha = 1` is Eq. 7's marginal;
-/// a larger `alpha` moves it towards the best bin's likelihood, so that a crop matching a
-/// plateau of bins moderately no longer outweighs one that matches a few bins sharply.
-fn sharpened_log_marginal(hist: &[f32], fused: &[f32], fmax: &[f32], n: usize, alpha: f32) -> Vec<f64> {
-    let a1 = alpha - 1.0;
-    let acc = hist
-        .par_chunks(n * 1024)
-        .zip(fused.par_chunks(n * 1024))
-        .map(|(hc, fc)| {
-            let mut acc = vec![0f32; n];
-            for (hrow, frow) in hc.chunks(n).zip(fc.chunks(n)) {
-                for (((h, f), m), a) in hrow.iter().zip(frow).zip(fmax).zip(acc.iter_mut()) {
-                    *a += h * fast_exp(a1 * (f - m));
-                }
-            }
-            acc.into_iter().map(f64::from).collect::<Vec<f64>>()
-        })
-        .reduce(
-            || vec![0f64; n],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    *x += y;
-                }
-                a
-            },
-        );
-    acc.into_iter().map(|v| v.max(1e-300).ln() / alpha as f64).collect()
 }
 
 fn column_max(h: &[f32], n: usize) -> Vec<f32> {

@@ -41,7 +41,7 @@ pub struct ObservationConfig {
 impl Default for ObservationConfig {
     fn default() -> Self {
         Self {
-            sigma: crate::tracker::codebook::env_f64("PREGRASP_X_SIGMA", 0.06) as f32,
+            sigma: 0.06,
             loglik_floor: -12.0,
             gate_similarity: 0.55,
             depth_sigma_m: 0.015,
