@@ -39,6 +39,12 @@ pub const ENCODER_VERSION: u32 = 2;
 
 /// Colour of far background in features (before `color_weight`).
 const BACKGROUND_GREY: f32 = 0.5;
+/// The steep plane fit: ring residuals noisier than this (normalised depth) are clutter, not
+/// a plane.
+const MAX_PLANE_SIGMA: f32 = 0.3;
+/// The steep plane fit's lowest noise scale (normalised depth): the affine plane model is off
+/// by about this much over a crop (perspective).
+const MIN_PLANE_SIGMA: f32 = 0.03;
 /// Sub-samples per feature cell side.
 const SUBSAMPLES: usize = 2;
 
@@ -290,6 +296,19 @@ pub fn inpaint_depth(layout: &FeatureLayout, x: &mut [f32], mask: &mut [bool], h
 /// Works on features straight from [`sample_crop`] (masked cells untouched) and returns whether
 /// a plane was found.
 pub fn suppress_support_plane(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has_color: bool) -> bool {
+    suppress_plane_impl(layout, x, mask, has_color, false)
+}
+
+/// [`suppress_support_plane`] that also fits a table so steep that it saturates most of the
+/// ring (the ring's saturated cells then only score the plane) and allows for the affine
+/// model's error over a crop (noise scale at least `MIN_PLANE_SIGMA`). Too eager for the
+/// encoder's input (measured worse), it answers whether anything stands on the table at all:
+/// see `observation::encode_particles`.
+pub fn suppress_support_plane_steep(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has_color: bool) -> bool {
+    suppress_plane_impl(layout, x, mask, has_color, true)
+}
+
+fn suppress_plane_impl(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has_color: bool, steep: bool) -> bool {
     let f = layout.feature_px;
     if f < 8 {
         return false;
@@ -305,27 +324,35 @@ pub fn suppress_support_plane(layout: &FeatureLayout, x: &mut [f32], mask: &[boo
             i < w || j < w || i >= f - w || j >= f - w
         })
         .collect();
-    let pts: Vec<(f32, f32, f32, usize)> = ring
+    // valid ring cells; the in-range ones define planes, all of them score planes when
+    // `steep` (against the clamped prediction), the in-range ones alone otherwise
+    let all: Vec<(f32, f32, f32, usize)> = ring
         .iter()
-        .filter(|&&k| !mask[k] && x[k] > 0.0 && x[k] < 1.0)
+        .filter(|&&k| !mask[k])
         .map(|&k| {
             let (u, v) = coord(k);
             (u, v, x[k], k)
         })
         .collect();
-    let need = (ring.len() * 2) / 5;
-    if pts.len() < need.max(8) {
+    let pts: Vec<(f32, f32, f32, usize)> = all.iter().filter(|p| p.2 > 0.0 && p.2 < 1.0).copied().collect();
+    let need = if steep {
+        (ring.len() * 3) / 20
+    } else {
+        (ring.len() * 2) / 5
+    };
+    if pts.len() < need.max(8) || (steep && all.len() < ring.len() / 2) {
         return false;
     }
+    let scored = if steep { &all } else { &pts };
     let m = pts.len();
     let residuals = |pl: [f32; 3], out: &mut Vec<f32>| {
         out.clear();
-        out.extend(
-            pts.iter()
-                .map(|(u, v, z, _)| (z - (pl[0] + pl[1] * u + pl[2] * v)).abs()),
-        );
+        out.extend(scored.iter().map(|(u, v, z, _)| {
+            let p = pl[0] + pl[1] * u + pl[2] * v;
+            (z - if steep { p.clamp(0.0, 1.0) } else { p }).abs()
+        }));
     };
-    let mut buf = Vec::with_capacity(m);
+    let mut buf = Vec::with_capacity(scored.len());
     let mut best: Option<([f32; 3], f32)> = None;
     // deterministic triples spread over the ring
     for t in 0..48usize {
@@ -344,13 +371,24 @@ pub fn suppress_support_plane(layout: &FeatureLayout, x: &mut [f32], mask: &[boo
         }
     }
     let Some((pl, med)) = best else { return false };
-    let sigma0 = (1.4826 * med).max(0.01);
+    let sigma0 = if steep {
+        // noise scale from the in-range cells (saturated ones fit exactly)
+        let mut r_in: Vec<f32> = pts
+            .iter()
+            .map(|(u, v, z, _)| (z - (pl[0] + pl[1] * u + pl[2] * v)).abs())
+            .collect();
+        let mid = r_in.len() / 2;
+        r_in.select_nth_unstable_by(mid, |p, q| p.total_cmp(q));
+        (1.4826 * r_in[mid]).max(MIN_PLANE_SIGMA)
+    } else {
+        (1.4826 * med).max(0.01)
+    };
     // least-squares refinement on the inliers
     let inl: Vec<&(f32, f32, f32, usize)> = pts
         .iter()
         .filter(|(u, v, z, _)| (z - (pl[0] + pl[1] * u + pl[2] * v)).abs() < 2.5 * sigma0)
         .collect();
-    if inl.len() < need.max(8) {
+    if inl.len() < need.max(8) || (steep && sigma0 > MAX_PLANE_SIGMA) {
         return false;
     }
     let mut ata = nalgebra::Matrix3::<f64>::zeros();
@@ -370,7 +408,7 @@ pub fn suppress_support_plane(layout: &FeatureLayout, x: &mut [f32], mask: &[boo
         .collect();
     let mid = res.len() / 2;
     res.select_nth_unstable_by(mid, |p, q| p.total_cmp(q));
-    let sigma = (1.4826 * res[mid]).max(0.01);
+    let sigma = (1.4826 * res[mid]).max(if steep { MIN_PLANE_SIGMA } else { 0.01 });
     // the table's colour: per-channel median over the inlier ring cells' colour cells
     let fc = layout.color_px();
     let cbase = layout.depth_len();
