@@ -776,9 +776,14 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_distr::{Distribution, Normal};
 
-    /// A 32 x 32 crop: a tilted table (depth grows 0.9 box across the crop, with noise)
+    /// A 32 x 32 crop: a tilted table (depth grows `slope` boxes across the crop, with noise)
     /// and a block standing on it in the centre, in front of the table by 0.1..0.4 box.
-    fn table_crop(with_color: bool, noise: f32, seed: u64) -> (FeatureLayout, Vec<f32>, Vec<bool>, Vec<bool>) {
+    fn table_crop(
+        with_color: bool,
+        noise: f32,
+        seed: u64,
+        slope: f32,
+    ) -> (FeatureLayout, Vec<f32>, Vec<bool>, Vec<bool>) {
         let layout = FeatureLayout {
             feature_px: 32,
             use_color: with_color,
@@ -793,7 +798,7 @@ mod tests {
         for i in 0..f {
             for j in 0..f {
                 let v = (i as f32 + 0.5) / f as f32 - 0.5;
-                let table = 0.5 - 0.9 * v; // nearer at the bottom of the image
+                let table = 0.5 - slope * v; // nearer at the bottom of the image
                 let k = i * f + j;
                 let inside = (10..22).contains(&i) && (11..21).contains(&j);
                 object[k] = inside;
@@ -823,7 +828,7 @@ mod tests {
     #[test]
     fn support_plane_is_removed_and_the_object_kept() {
         for (with_color, noise) in [(false, 0.02), (true, 0.02), (true, 0.15)] {
-            let (layout, mut x, mask, object) = table_crop(with_color, noise, 3);
+            let (layout, mut x, mask, object) = table_crop(with_color, noise, 3, 0.9);
             assert!(suppress_support_plane(&layout, &mut x, &mask, with_color));
             let f = 32;
             let table_cells: Vec<usize> = (0..f * f).filter(|&k| !object[k]).collect();
@@ -852,9 +857,24 @@ mod tests {
     }
 
     #[test]
+    fn a_steep_table_is_found_by_the_steep_fit_only() {
+        // 2 boxes of depth over the crop: most of the ring saturates near or far
+        let (layout, x, mask, object) = table_crop(false, 0.02, 5, 2.0);
+        let mut flat = x.clone();
+        assert!(!suppress_support_plane(&layout, &mut flat, &mask, false));
+        let mut steep = x.clone();
+        assert!(suppress_support_plane_steep(&layout, &mut steep, &mask, false));
+        let f = 32;
+        let table_left = (0..f * f).filter(|&k| !object[k] && steep[k] < 1.0).count();
+        let object_kept = (0..f * f).filter(|&k| object[k] && steep[k] < 1.0).count();
+        assert!(table_left < 60, "{table_left} of about 900 table cells left");
+        assert!(object_kept > 60, "{object_kept} object cells kept");
+    }
+
+    #[test]
     fn no_plane_in_free_space() {
         // the object in front of far background: the ring reads far, nothing is fitted
-        let (layout, mut x, mask, object) = table_crop(false, 0.0, 1);
+        let (layout, mut x, mask, object) = table_crop(false, 0.0, 1, 0.9);
         for (k, o) in object.iter().enumerate() {
             if !o {
                 x[k] = 1.0;
