@@ -479,12 +479,12 @@ fn corrupt(
                 for cj in 0..fc {
                     // depth cell under this colour cell (top-left of its 2 x 2 block)
                     let dk = (ci * f / fc) * f + cj * f / fc;
-                    for ch in 0..3 {
+                    for (ch, pc) in plane_color.iter().enumerate() {
                         let k = base + (ci * fc + cj) * 3 + ch;
                         if no_background && bg[dk] {
                             mask[k] = true;
                         } else if on_plane[dk] {
-                            x[k] = (plane_color[ch] * rng.random_range(0.9..1.1f32)).min(layout.color_weight);
+                            x[k] = (pc * rng.random_range(0.9..1.1f32)).min(layout.color_weight);
                         } else if clutter && bg[dk] {
                             x[k] = grey;
                         } else {

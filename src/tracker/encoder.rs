@@ -463,11 +463,14 @@ fn suppress_plane_impl(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has
         for di in -1..=1i64 {
             for dj in -1..=1i64 {
                 let (a, b) = (i + di, j + dj);
-                if a >= 0 && b >= 0 && a < f as i64 && b < f as i64 {
-                    if let Some(r) = resid[a as usize * f + b as usize] {
-                        sum += r;
-                        n += 1;
-                    }
+                if a >= 0
+                    && b >= 0
+                    && a < f as i64
+                    && b < f as i64
+                    && let Some(r) = resid[a as usize * f + b as usize]
+                {
+                    sum += r;
+                    n += 1;
                 }
             }
         }
