@@ -1,11 +1,12 @@
 //! Issue 3's real-data check: on the 10 real frames of `shared/realdata/ycbv_video_0000/bop/`
 //! the mug is tracked from its detection box to within 2 cm (translation) and 1 cm (ADD-S) by
-//! the last frame, and its rotation about its axis (handle hidden) is left ambiguous.
+//! the last frame (met: 1.8 cm / ADD-S 0.8 cm with the support-plane suppression), and its
+//! rotation about its axis (handle hidden) is left ambiguous (not met yet: ignored test).
 
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use pregrasp::dataset::Sequence;
 use pregrasp::eval::report::Mode;
-use pregrasp::eval::run::{EvalConfig, ModelStore, evaluate_sequence};
+use pregrasp::eval::run::{EvalConfig, ModelStore, SequenceOutcome, evaluate_sequence};
 use pregrasp::render::Renderer;
 use pregrasp::tracker::{CodebookConfig, TrackerConfig};
 use std::path::PathBuf;
@@ -16,10 +17,8 @@ fn shared() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared"))
 }
 
-#[test]
-#[ignore = "the tracker does not reach it yet: at the last frame 4.2 cm / ADD-S 1.7 cm (10 deg grid, tracker 6435b72), \
-            9.2 cm (10 deg) and 7.5 cm / ADD-S 3.0 cm (5 deg grid) with tracker f244f61; run with --ignored"]
-fn real_mug_is_tracked_from_its_detection_box() {
+/// The evaluation of the real clip with the default tracker and a 10-degree grid.
+fn evaluate_real_clip() -> SequenceOutcome {
     let seq = Sequence::open(&shared().join("realdata/ycbv_video_0000/bop")).expect("real sequence");
     let renderer = Renderer::new().expect("renderer");
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -37,7 +36,12 @@ fn real_mug_is_tracked_from_its_detection_box() {
         only_target: false,
     };
     let mut store = ModelStore::default();
-    let out = evaluate_sequence(&seq, &renderer, &cfg, &mut store).expect("evaluate");
+    evaluate_sequence(&seq, &renderer, &cfg, &mut store).expect("evaluate")
+}
+
+#[test]
+fn real_mug_is_tracked_from_its_detection_box() {
+    let out = evaluate_real_clip();
     let mug = out.traces.iter().find(|t| t.object == "025_mug").expect("mug trace");
     assert_eq!(mug.frames.len(), 10);
     let last = mug
@@ -51,6 +55,13 @@ fn real_mug_is_tracked_from_its_detection_box() {
         last.translation_error_m
     );
     assert!(last.add_s_m < 0.01, "ADD-S {:.4} m", last.add_s_m);
+}
+
+#[test]
+#[ignore = "not reached yet: the modes that share the mug's axis spread over 20 deg of spin at the last frame (10 deg grid, \
+            tracker acc 78175ee, support-plane suppression), against the 30 deg asked; run with --ignored"]
+fn real_mug_spin_about_its_axis_stays_open() {
+    let out = evaluate_real_clip();
     // Ambiguity about the axis (the mesh's z, the mug's height): the distribution must keep
     // several spins about it rather than pick one angle with confidence. Modes with at least
     // 5 % of the mass, their z axes agreeing (within 25 degrees), their spins differing by at

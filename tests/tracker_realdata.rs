@@ -130,8 +130,9 @@ fn real_mug_is_tracked_from_its_detection_box() {
         last = (t_err, add_s);
     }
     // The target is 0.02 m / 0.01 m. With this test's coarse codebook (10-degree grid,
-    // 16 x 16 features) we measure about 0.03 m / 0.016 m at the last frame; these bounds
-    // guard that level until the full codebook closes the gap.
-    assert!(last.0 < 0.045, "translation error at the last frame {}", last.0);
-    assert!(last.1 < 0.022, "ADD-S at the last frame {}", last.1);
+    // 16 x 16 features) and the support-plane suppression we measure 0.0175 m / 0.0086 m at
+    // the last frame (without it: about 0.03 m / 0.016 m); these bounds guard that level with
+    // some margin.
+    assert!(last.0 < 0.025, "translation error at the last frame {}", last.0);
+    assert!(last.1 < 0.012, "ADD-S at the last frame {}", last.1);
 }

@@ -47,6 +47,14 @@ pub struct CodebookConfig {
     pub n_train: usize,
     pub ridge_lambda_rel: f64,
     pub seed: u64,
+    /// Training crops' centre jitter, as a share of the crop side (each axis, uniform +-).
+    pub crop_jitter_rel: f64,
+    /// Share of training crops whose background is a support plane touching the object (a
+    /// table seen from above: steep depth gradient, the table's colour).
+    pub support_plane_prob: f64,
+    /// Remove the support plane from crops before encoding
+    /// ([`crate::tracker::encoder::suppress_support_plane`]), observed and training crops alike.
+    pub suppress_plane: bool,
 }
 
 impl Default for CodebookConfig {
@@ -58,10 +66,13 @@ impl Default for CodebookConfig {
             crop_margin: 1.2,
             code_dim: 128,
             use_color: true,
-            color_weight: 0.7,
+            color_weight: 1.2,
             n_train: 12_000,
             ridge_lambda_rel: 1e-3,
             seed: 7,
+            crop_jitter_rel: 0.06,
+            support_plane_prob: 0.5,
+            suppress_plane: true,
         }
     }
 }
@@ -339,8 +350,9 @@ impl Codebook {
 }
 
 /// A corrupted crop of view `view` at in-plane angle `theta`: shifted, rescaled, rotated within
-/// the bin, depth offset and noise, missing pixels, an occluder, background clutter, colour
-/// changes or no colour at all.
+/// the bin, depth offset and noise, missing pixels, an occluder, background clutter or a
+/// support plane the object rests on (then suppressed as observed crops are), colour changes
+/// or no colour at all.
 fn corrupt(
     layout: &FeatureLayout,
     view: &(DepthImage, Option<ColorImage>),
@@ -356,10 +368,11 @@ fn corrupt(
     let rp = config.render_px as f64;
     let mut x = vec![0f32; d];
     let mut mask = vec![false; d];
+    let jit = config.crop_jitter_rel.abs();
     let p = CropParams {
         centre_px: [
-            rp / 2.0 + rng.random_range(-0.06..0.06) * rp,
-            rp / 2.0 + rng.random_range(-0.06..0.06) * rp,
+            rp / 2.0 + rng.random_range(-jit..=jit) * rp,
+            rp / 2.0 + rng.random_range(-jit..=jit) * rp,
         ],
         side_px: rp * rng.random_range(0.9..1.1),
         rotation_rad: theta + rng.random_range(-0.5..0.5) * step_rad,
@@ -368,15 +381,52 @@ fn corrupt(
         zero_is_far: true,
     };
     sample_crop(layout, &view.0, view.1.as_ref(), &p, &mut x, &mut mask);
+    let bg: Vec<bool> = x[..f * f].iter().map(|&v| v >= 1.0).collect();
+    // a support plane touching the object (a table seen from above): its depth grows
+    // steeply across the crop (a camera 30 degrees above a table sees about 2 boxes of depth
+    // change over one crop side), it carries the table's colour, and the object rests on it
+    let support = rng.random::<f64>() < config.support_plane_prob;
+    let mut plane_color = [0f32; 3];
+    let mut on_plane = vec![false; f * f];
+    if support {
+        let phi = rng.random_range(0.0..std::f32::consts::TAU);
+        let g = rng.random_range(0.3..3.0f32);
+        let (gu, gv) = (g * phi.cos(), g * phi.sin());
+        let at = |k: usize| -> f32 {
+            let (i, j) = (k / f, k % f);
+            gu * ((j as f32 + 0.5) / f as f32 - 0.5) + gv * ((i as f32 + 0.5) / f as f32 - 0.5)
+        };
+        // offset: the plane touches the object's visible surface from behind (min gap 0)
+        let mut c = f32::NEG_INFINITY;
+        for k in 0..f * f {
+            if !bg[k] && !mask[k] {
+                c = c.max(x[k] - at(k));
+            }
+        }
+        if c.is_finite() {
+            let c = c + rng.random_range(0.0..0.05f32);
+            for k in 0..f * f {
+                if bg[k] {
+                    let v = c + at(k);
+                    if v < 1.0 {
+                        x[k] = v.max(0.0);
+                        on_plane[k] = true;
+                    }
+                }
+            }
+        }
+        for ch in plane_color.iter_mut() {
+            *ch = rng.random_range(0.1..0.9f32) * layout.color_weight;
+        }
+    }
     // background clutter: a tilted plane behind or around the object
-    let clutter = rng.random::<f64>() < 0.6;
+    let clutter = !support && rng.random::<f64>() < 0.6;
     let (c0, gx, gy) = (
         rng.random_range(0.3..1.0f32),
         rng.random_range(-0.4..0.4f32),
         rng.random_range(-0.4..0.4f32),
     );
     let grey = rng.random_range(0.1..0.9f32) * layout.color_weight;
-    let bg: Vec<bool> = x[..f * f].iter().map(|&v| v >= 1.0).collect();
     if clutter {
         for i in 0..f {
             for j in 0..f {
@@ -410,7 +460,7 @@ fn corrupt(
     }
     // missing depth readings, sometimes the whole background (nothing behind the object)
     let missing = rng.random_range(0.0..0.2f64);
-    let no_background = !clutter && rng.random::<f64>() < 0.5;
+    let no_background = !clutter && !support && rng.random::<f64>() < 0.5;
     for k in 0..f * f {
         if rng.random::<f64>() < missing || (no_background && bg[k]) {
             mask[k] = true;
@@ -429,10 +479,12 @@ fn corrupt(
                 for cj in 0..fc {
                     // depth cell under this colour cell (top-left of its 2 x 2 block)
                     let dk = (ci * f / fc) * f + cj * f / fc;
-                    for ch in 0..3 {
+                    for (ch, pc) in plane_color.iter().enumerate() {
                         let k = base + (ci * fc + cj) * 3 + ch;
                         if no_background && bg[dk] {
                             mask[k] = true;
+                        } else if on_plane[dk] {
+                            x[k] = (pc * rng.random_range(0.9..1.1f32)).min(layout.color_weight);
                         } else if clutter && bg[dk] {
                             x[k] = grey;
                         } else {
@@ -442,6 +494,9 @@ fn corrupt(
                 }
             }
         }
+    }
+    if config.suppress_plane {
+        crate::tracker::encoder::suppress_support_plane(layout, &mut x, &mask, has_color);
     }
     crate::tracker::encoder::inpaint_depth(layout, &mut x, &mut mask, has_color);
     (x, mask)

@@ -20,6 +20,9 @@ use std::time::Instant;
 
 /// A crop with fewer valid depth cells than this share is not used.
 const MIN_VALID_SHARE: f64 = 0.25;
+/// A crop whose support plane was removed is not used (no object there) when fewer than this
+/// share of its depth cells are left in front of the plane.
+const MIN_OBJECT_SHARE: f64 = 0.08;
 
 /// Parameters of the observation model.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -93,6 +96,7 @@ pub fn encode_particles(
     let n = positions_in_view_m.len();
     let side_m = codebook.crop_side_m();
     let box_m = codebook.box_m();
+    let suppress = codebook.config.suppress_plane;
     let k = view.intrinsics;
     let crops: Vec<(Vec<f32>, Vec<bool>, bool, f32)> = positions_in_view_m
         .par_iter()
@@ -118,10 +122,21 @@ pub fn encode_particles(
             // depth consistency (below) reads the raw cells; the encoder gets inpainted ones
             let raw_x = x[..f * f].to_vec();
             let raw_m = m[..f * f].to_vec();
+            let mut has_object = true;
+            if suppress {
+                // is anything standing on the table here? (the steep fit, on a copy: an empty
+                // patch of table must not pass for an object seen edge-on)
+                let mut probe = x[..f * f].to_vec();
+                if crate::tracker::encoder::suppress_support_plane_steep(&layout, &mut probe, &m, false) {
+                    let near = (0..f * f).filter(|&c| !m[c] && probe[c] < 1.0).count();
+                    has_object = near as f64 >= MIN_OBJECT_SHARE * (f * f) as f64;
+                }
+                crate::tracker::encoder::suppress_support_plane(&layout, &mut x, &m, view.color.is_some());
+            }
             crate::tracker::encoder::inpaint_depth(&layout, &mut x, &mut m, view.color.is_some());
             // depth check input: the central surface of the raw crop
             let score = crate::tracker::encoder::central_median_depth(&layout, &raw_x, &raw_m).unwrap_or(f32::NAN);
-            (x, m, share >= MIN_VALID_SHARE, score)
+            (x, m, share >= MIN_VALID_SHARE && has_object, score)
         })
         .collect();
     let crops_s = t0.elapsed().as_secs_f64();
