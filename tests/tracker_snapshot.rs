@@ -177,3 +177,53 @@ fn a_snapshot_restores_tracks_into_a_fresh_tracker_even_on_another_grid() {
     v2.version += 1;
     assert!(other.restore_frame(&v2).is_err());
 }
+
+#[test]
+fn a_finer_codebook_carries_the_tracks_over_instead_of_restarting_them() {
+    let mesh = pregrasp::mesh::builtin("box").unwrap();
+    let cb = coarse_codebook(&mesh);
+    let truth_world = on_table(&mesh, 0.05, 0.02, 0.6);
+    let scene = Scene::new(vec![("box".into(), mesh.clone(), truth_world)]);
+    let (cam, cams) = rig();
+    let truth = cam.inverse() * truth_world;
+    let mut tracker = Tracker::new(TrackerConfig::default(), cams, "ext1".into());
+    tracker.add_object_model("box", mesh.clone(), cb.clone());
+    for step in 0..5 {
+        let f = frame("ext1", &cam, &scene, step == 0, true, 0.01, step);
+        tracker.step(&[f], None).unwrap();
+    }
+    let id = tracker.tracks()[0].id;
+    let before = tracker.estimate(id).unwrap();
+    // another grid arrives for the same model (8 degrees here, to stay fast)
+    let other = std::sync::Arc::new(
+        pregrasp::tracker::Codebook::build(
+            &pregrasp::tracker::codebook::CpuViews(&mesh),
+            &mesh,
+            pregrasp::geometry::RotationGrid::new(9).unwrap(),
+            &cb.config,
+        )
+        .unwrap(),
+    );
+    tracker.add_object_model("box", mesh.clone(), other);
+    assert_eq!(tracker.tracks().len(), 1);
+    assert_eq!(tracker.tracks()[0].status, TrackStatus::Tracking, "carried over, not restarted");
+    let carried = tracker.estimate(id).unwrap();
+    assert!(translation_error(&carried.reference_from_object, &before.reference_from_object) < 0.003);
+    assert!(
+        carried
+            .reference_from_object
+            .rotation
+            .angle_to(&before.reference_from_object.rotation)
+            .to_degrees()
+            < 10.0
+    );
+    // and it keeps tracking on the new grid (no detections: the same track must take them)
+    for step in 5..8 {
+        let f = frame("ext1", &cam, &scene, false, true, 0.01, step);
+        tracker.step(&[f], None).unwrap();
+    }
+    assert_eq!(tracker.tracks().len(), 1);
+    assert_eq!(tracker.tracks()[0].status, TrackStatus::Tracking);
+    let e = tracker.estimate(id).unwrap();
+    assert!(translation_error(&e.reference_from_object, &truth) < 0.03);
+}

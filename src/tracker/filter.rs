@@ -216,20 +216,19 @@ impl Tracker {
                 t
             }
         };
-        if let Some(m) = self.models.iter_mut().find(|m| m.name == name) {
-            // a better codebook for a known model: tracks of it restart on their next detection
-            let same_grid = m.codebook.grid == grid;
+        if let Some(mi) = self.models.iter().position(|m| m.name == name) {
+            // a better codebook for a known model: its tracks move to the new grid through
+            // their compact snapshots (see `snapshot`), keeping particles and marginals
+            let carried = if self.models[mi].codebook.grid != grid {
+                self.snapshots_of_model(mi)
+            } else {
+                Vec::new()
+            };
+            let m = &mut self.models[mi];
             m.mesh = mesh;
             m.codebook = codebook;
             m.tables = tables;
-            if !same_grid {
-                let mi = self.models.iter().position(|m| m.name == name).unwrap_or(0);
-                for (t, s) in self.tracks.iter_mut().zip(&self.states) {
-                    if s.model == mi {
-                        t.status = TrackStatus::Lost;
-                    }
-                }
-            }
+            self.carry_tracks_to_new_grid(carried);
             return;
         }
         self.models.push(Model {

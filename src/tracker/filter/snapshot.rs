@@ -169,6 +169,38 @@ impl Tracker {
         Ok(id)
     }
 
+    /// Re-bins every track of model `name` onto that model's new grid (a finer codebook
+    /// arrived): each track goes through its compact snapshot, so it keeps its particles,
+    /// weights and marginal rotation instead of restarting. Returns the tracks that could not
+    /// be carried over (declared lost, their particles dropped).
+    pub(super) fn carry_tracks_to_new_grid(&mut self, carried: Vec<TrackSnapshot>) -> Vec<u64> {
+        let mut failed = Vec::new();
+        for t in carried {
+            if let Err(e) = self.restore_track(&t) {
+                tracing::warn!("track {} not carried to the new grid: {e}", t.track.id);
+                if let Some(i) = self.index_of(t.track.id) {
+                    self.tracks[i].status = TrackStatus::Lost;
+                    let st = &mut self.states[i];
+                    st.positions.clear();
+                    st.sources.clear();
+                    st.weights.clear();
+                    st.hist.clear();
+                    st.map_cache.clear();
+                }
+                failed.push(t.track.id);
+            }
+        }
+        failed
+    }
+
+    /// Snapshots of the tracks of model `mi` (before its grid changes).
+    pub(super) fn snapshots_of_model(&self, mi: usize) -> Vec<TrackSnapshot> {
+        (0..self.tracks.len())
+            .filter(|&i| self.states[i].model == mi && self.states[i].n() > 0)
+            .map(|i| self.track_snapshot(i))
+            .collect()
+    }
+
     /// Stops tracking `track_id`; false when there is no such track.
     pub fn remove_track(&mut self, track_id: u64) -> bool {
         match self.index_of(track_id) {
@@ -183,44 +215,9 @@ impl Tracker {
 
     /// A compact snapshot of every track (see the module docs).
     pub fn snapshot(&self) -> TrackerSnapshot {
-        let tracks = self
-            .tracks
-            .iter()
-            .zip(&self.states)
-            .filter(|(_, s)| s.n() > 0)
-            .map(|(track, s)| {
-                let tables = &self.models[s.model].tables;
-                let mixture = s.set(tables).mixture();
-                let total: f64 = mixture.iter().sum();
-                let mut bins: Vec<(u32, f32)> = mixture
-                    .iter()
-                    .enumerate()
-                    .filter(|(_, m)| **m > 0.0)
-                    .map(|(b, m)| (b as u32, (*m / total.max(1e-300)) as f32))
-                    .collect();
-                bins.sort_by(|a, b| b.1.total_cmp(&a.1));
-                let mut kept = 0.0f64;
-                let keep = bins
-                    .iter()
-                    .take_while(|(_, m)| {
-                        let more = kept < 1.0 - SNAPSHOT_DROPPED_MASS;
-                        kept += *m as f64;
-                        more
-                    })
-                    .count();
-                bins.truncate(keep.max(1));
-                bins.sort_by_key(|(b, _)| *b);
-                TrackSnapshot {
-                    track: track.clone(),
-                    grid_step_deg: tables.grid.step_deg(),
-                    positions_m: s.positions.iter().map(|p| [p.x, p.y, p.z]).collect(),
-                    sources: s.sources.iter().map(|c| self.camera_names[*c].clone()).collect(),
-                    weights: s.weights.clone(),
-                    reference_from_hist: s.reference_from_hist,
-                    rotation_xyzw: s.rotation.map(|q| [q.i, q.j, q.k, q.w]),
-                    rotation_bins: bins,
-                }
-            })
+        let tracks = (0..self.tracks.len())
+            .filter(|&i| self.states[i].n() > 0)
+            .map(|i| self.track_snapshot(i))
             .collect();
         TrackerSnapshot {
             version: SNAPSHOT_VERSION,
@@ -229,6 +226,42 @@ impl Tracker {
             world_from_reference: self.world_from_reference,
             last_odometry: self.last_odometry,
             tracks,
+        }
+    }
+
+    /// The compact snapshot of track `i` (index into `tracks`).
+    fn track_snapshot(&self, i: usize) -> TrackSnapshot {
+        let (track, s) = (&self.tracks[i], &self.states[i]);
+        let tables = &self.models[s.model].tables;
+        let mixture = s.set(tables).mixture();
+        let total: f64 = mixture.iter().sum();
+        let mut bins: Vec<(u32, f32)> = mixture
+            .iter()
+            .enumerate()
+            .filter(|(_, m)| **m > 0.0)
+            .map(|(b, m)| (b as u32, (*m / total.max(1e-300)) as f32))
+            .collect();
+        bins.sort_by(|a, b| b.1.total_cmp(&a.1));
+        let mut kept = 0.0f64;
+        let keep = bins
+            .iter()
+            .take_while(|(_, m)| {
+                let more = kept < 1.0 - SNAPSHOT_DROPPED_MASS;
+                kept += *m as f64;
+                more
+            })
+            .count();
+        bins.truncate(keep.max(1));
+        bins.sort_by_key(|(b, _)| *b);
+        TrackSnapshot {
+            track: track.clone(),
+            grid_step_deg: tables.grid.step_deg(),
+            positions_m: s.positions.iter().map(|p| [p.x, p.y, p.z]).collect(),
+            sources: s.sources.iter().map(|c| self.camera_names[*c].clone()).collect(),
+            weights: s.weights.clone(),
+            reference_from_hist: s.reference_from_hist,
+            rotation_xyzw: s.rotation.map(|q| [q.i, q.j, q.k, q.w]),
+            rotation_bins: bins,
         }
     }
 
