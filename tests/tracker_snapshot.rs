@@ -206,7 +206,11 @@ fn a_finer_codebook_carries_the_tracks_over_instead_of_restarting_them() {
     );
     tracker.add_object_model("box", mesh.clone(), other);
     assert_eq!(tracker.tracks().len(), 1);
-    assert_eq!(tracker.tracks()[0].status, TrackStatus::Tracking, "carried over, not restarted");
+    assert_eq!(
+        tracker.tracks()[0].status,
+        TrackStatus::Tracking,
+        "carried over, not restarted"
+    );
     let carried = tracker.estimate(id).unwrap();
     assert!(translation_error(&carried.reference_from_object, &before.reference_from_object) < 0.003);
     assert!(
