@@ -16,6 +16,57 @@ fn rig() -> (pregrasp::geometry::Pose, BTreeMap<String, CameraMount>) {
     (cam, cams)
 }
 
+/// A box on the table, tracked for 5 steps by one stationary camera (10-degree codebook).
+struct TrackedBox {
+    mesh: pregrasp::mesh::Mesh,
+    cb: std::sync::Arc<pregrasp::tracker::Codebook>,
+    scene: Scene,
+    cam: pregrasp::geometry::Pose,
+    cams: BTreeMap<String, CameraMount>,
+    truth: pregrasp::geometry::Pose,
+    tracker: Tracker,
+}
+
+fn tracked_box() -> TrackedBox {
+    let mesh = pregrasp::mesh::builtin("box").unwrap();
+    let cb = coarse_codebook(&mesh);
+    let truth_world = on_table(&mesh, 0.05, 0.02, 0.6);
+    let scene = Scene::new(vec![("box".into(), mesh.clone(), truth_world)]);
+    let (cam, cams) = rig();
+    let mut tracker = Tracker::new(TrackerConfig::default(), cams.clone(), "ext1".into());
+    tracker.add_object_model("box", mesh.clone(), cb.clone());
+    for step in 0..5 {
+        let f = frame("ext1", &cam, &scene, step == 0, true, 0.01, step);
+        tracker.step(&[f], None).unwrap();
+    }
+    TrackedBox {
+        truth: cam.inverse() * truth_world,
+        mesh,
+        cb,
+        scene,
+        cam,
+        cams,
+        tracker,
+    }
+}
+
+/// The model's codebook on another grid.
+fn codebook_on(
+    mesh: &pregrasp::mesh::Mesh,
+    step_deg: u32,
+    like: &pregrasp::tracker::Codebook,
+) -> std::sync::Arc<pregrasp::tracker::Codebook> {
+    std::sync::Arc::new(
+        pregrasp::tracker::Codebook::build(
+            &pregrasp::tracker::codebook::CpuViews(mesh),
+            mesh,
+            pregrasp::geometry::RotationGrid::new(step_deg).unwrap(),
+            &like.config,
+        )
+        .unwrap(),
+    )
+}
+
 #[test]
 fn a_prior_starts_a_track_with_its_pose_and_spread_then_evidence_takes_over() {
     let mesh = pregrasp::mesh::builtin("box").unwrap();
@@ -83,17 +134,15 @@ fn a_prior_starts_a_track_with_its_pose_and_spread_then_evidence_takes_over() {
 
 #[test]
 fn a_snapshot_restores_tracks_into_a_fresh_tracker_even_on_another_grid() {
-    let mesh = pregrasp::mesh::builtin("box").unwrap();
-    let cb = coarse_codebook(&mesh);
-    let truth_world = on_table(&mesh, 0.05, 0.02, 0.6);
-    let scene = Scene::new(vec![("box".into(), mesh.clone(), truth_world)]);
-    let (cam, cams) = rig();
-    let mut tracker = Tracker::new(TrackerConfig::default(), cams.clone(), "ext1".into());
-    tracker.add_object_model("box", mesh.clone(), cb.clone());
-    for step in 0..5 {
-        let f = frame("ext1", &cam, &scene, step == 0, true, 0.01, step);
-        tracker.step(&[f], None).unwrap();
-    }
+    let TrackedBox {
+        mesh,
+        cb,
+        scene,
+        cam,
+        cams,
+        tracker,
+        ..
+    } = tracked_box();
     let id = tracker.tracks()[0].id;
     let before = tracker.estimate(id).unwrap();
     let snap = tracker.snapshot();
@@ -139,15 +188,7 @@ fn a_snapshot_restores_tracks_into_a_fresh_tracker_even_on_another_grid() {
     assert_eq!(fresh.tracks()[0].status, TrackStatus::Tracking);
 
     // Another grid (15 degrees): the mass moves to the nearest bins.
-    let coarse = std::sync::Arc::new(
-        pregrasp::tracker::Codebook::build(
-            &pregrasp::tracker::codebook::CpuViews(&mesh),
-            &mesh,
-            pregrasp::geometry::RotationGrid::new(15).unwrap(),
-            &cb.config,
-        )
-        .unwrap(),
-    );
+    let coarse = codebook_on(&mesh, 15, &cb);
     let mut other = Tracker::new(TrackerConfig::default(), cams, "ext1".into());
     other.add_object_model("box", mesh.clone(), coarse);
     other.restore_frame(&snap).unwrap();
@@ -180,30 +221,19 @@ fn a_snapshot_restores_tracks_into_a_fresh_tracker_even_on_another_grid() {
 
 #[test]
 fn a_finer_codebook_carries_the_tracks_over_instead_of_restarting_them() {
-    let mesh = pregrasp::mesh::builtin("box").unwrap();
-    let cb = coarse_codebook(&mesh);
-    let truth_world = on_table(&mesh, 0.05, 0.02, 0.6);
-    let scene = Scene::new(vec![("box".into(), mesh.clone(), truth_world)]);
-    let (cam, cams) = rig();
-    let truth = cam.inverse() * truth_world;
-    let mut tracker = Tracker::new(TrackerConfig::default(), cams, "ext1".into());
-    tracker.add_object_model("box", mesh.clone(), cb.clone());
-    for step in 0..5 {
-        let f = frame("ext1", &cam, &scene, step == 0, true, 0.01, step);
-        tracker.step(&[f], None).unwrap();
-    }
+    let TrackedBox {
+        mesh,
+        cb,
+        scene,
+        cam,
+        truth,
+        mut tracker,
+        ..
+    } = tracked_box();
     let id = tracker.tracks()[0].id;
     let before = tracker.estimate(id).unwrap();
     // another grid arrives for the same model (8 degrees here, to stay fast)
-    let other = std::sync::Arc::new(
-        pregrasp::tracker::Codebook::build(
-            &pregrasp::tracker::codebook::CpuViews(&mesh),
-            &mesh,
-            pregrasp::geometry::RotationGrid::new(9).unwrap(),
-            &cb.config,
-        )
-        .unwrap(),
-    );
+    let other = codebook_on(&mesh, 9, &cb);
     tracker.add_object_model("box", mesh.clone(), other);
     assert_eq!(tracker.tracks().len(), 1);
     assert_eq!(
