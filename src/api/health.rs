@@ -51,95 +51,87 @@ async fn healthz(State(state): State<AppState>) -> Json<Health> {
 async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
     let m = &state.metrics;
     let mut s = String::new();
-    let mut counter = |name: &str, help: &str, v: u64| {
+    let counters: [(&str, &str, &std::sync::atomic::AtomicU64); 10] = [
+        ("pregrasp_frames_accepted_total", "Frames accepted", &m.frames_accepted),
+        (
+            "pregrasp_frames_stale_total",
+            "Frames refused as older than the window or duplicate",
+            &m.frames_stale,
+        ),
+        (
+            "pregrasp_frames_dropped_total",
+            "Accepted frames dropped unprocessed (queue full or superseded)",
+            &m.frames_dropped,
+        ),
+        (
+            "pregrasp_odometry_accepted_total",
+            "Odometry messages accepted",
+            &m.odometry_accepted,
+        ),
+        ("pregrasp_steps_total", "Tracker steps", &m.steps),
+        (
+            "pregrasp_step_errors_total",
+            "Tracker steps that failed",
+            &m.step_errors,
+        ),
+        ("pregrasp_decisions_total", "Decisions answered", &m.decisions),
+        (
+            "pregrasp_decisions_from_bank_total",
+            "Decisions that read the samples drawn after the latest step",
+            &m.decisions_from_bank,
+        ),
+        (
+            "pregrasp_decisions_shared_total",
+            "Decisions answered by an identical query of the same step",
+            &m.decisions_shared,
+        ),
+        (
+            "pregrasp_requests_rejected_total",
+            "Requests answered with a 4xx",
+            &m.requests_rejected,
+        ),
+    ];
+    for (name, help, v) in counters {
+        let v = v.load(Ordering::Relaxed);
         let _ = writeln!(s, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
-    };
-    counter(
-        "pregrasp_frames_accepted_total",
-        "Frames accepted",
-        m.frames_accepted.load(Ordering::Relaxed),
-    );
-    counter(
-        "pregrasp_frames_stale_total",
-        "Frames refused as older than the window or duplicate",
-        m.frames_stale.load(Ordering::Relaxed),
-    );
-    counter(
-        "pregrasp_frames_dropped_total",
-        "Accepted frames dropped unprocessed (queue full or superseded)",
-        m.frames_dropped.load(Ordering::Relaxed),
-    );
-    counter(
-        "pregrasp_odometry_accepted_total",
-        "Odometry messages accepted",
-        m.odometry_accepted.load(Ordering::Relaxed),
-    );
-    counter("pregrasp_steps_total", "Tracker steps", m.steps.load(Ordering::Relaxed));
-    counter(
-        "pregrasp_step_errors_total",
-        "Tracker steps that failed",
-        m.step_errors.load(Ordering::Relaxed),
-    );
-    counter(
-        "pregrasp_step_latency_seconds_sum",
-        "Sum of step latencies in microseconds",
-        m.step_latency_us_sum.load(Ordering::Relaxed),
-    );
-    counter(
-        "pregrasp_decisions_total",
-        "Decisions answered",
-        m.decisions.load(Ordering::Relaxed),
-    );
-    counter(
-        "pregrasp_decisions_from_bank_total",
-        "Decisions that read the samples drawn after the latest step",
-        m.decisions_from_bank.load(Ordering::Relaxed),
-    );
-    counter(
-        "pregrasp_decisions_shared_total",
-        "Decisions answered by an identical query of the same step",
-        m.decisions_shared.load(Ordering::Relaxed),
-    );
-    counter(
-        "pregrasp_requests_rejected_total",
-        "Requests answered with a 4xx",
-        m.requests_rejected.load(Ordering::Relaxed),
-    );
+    }
+    let seconds_total = m.step_latency_us_sum.load(Ordering::Relaxed) as f64 * 1e-6;
     let _ = writeln!(
         s,
-        "# HELP pregrasp_step_seconds_total Time spent in tracker steps\n# TYPE pregrasp_step_seconds_total counter\npregrasp_step_seconds_total {}",
-        m.step_latency_us_sum.load(Ordering::Relaxed) as f64 * 1e-6
+        "# HELP pregrasp_step_seconds_total Time spent in tracker steps\n# TYPE pregrasp_step_seconds_total counter\npregrasp_step_seconds_total {seconds_total}"
     );
     let stats = state.stats.lock().unwrap_or_else(|p| p.into_inner()).clone();
-    let mut gauge = |name: &str, help: &str, v: f64| {
+    let gauges: [(&str, &str, f64); 6] = [
+        (
+            "pregrasp_queue_depth",
+            "Frames waiting for the tracker",
+            state.ingest().pending() as f64,
+        ),
+        ("pregrasp_tracks", "Tracks", state.tracking.track_count() as f64),
+        (
+            "pregrasp_tracker_snapshot_bytes",
+            "Size of the last tracker snapshot written to the store",
+            m.tracker_snapshot_bytes.load(Ordering::Relaxed) as f64,
+        ),
+        (
+            "pregrasp_step_rate_hz",
+            "Achieved tracker steps per second (last second)",
+            stats.step_rate_hz,
+        ),
+        (
+            "pregrasp_ingest_rate_hz",
+            "Frames accepted per second (last second)",
+            stats.ingest_rate_hz,
+        ),
+        (
+            "pregrasp_last_step_latency_seconds",
+            "Latency of the last step",
+            m.last_step_latency_us.load(Ordering::Relaxed) as f64 * 1e-6,
+        ),
+    ];
+    for (name, help, v) in gauges {
         let _ = writeln!(s, "# HELP {name} {help}\n# TYPE {name} gauge\n{name} {v}");
-    };
-    gauge(
-        "pregrasp_queue_depth",
-        "Frames waiting for the tracker",
-        state.ingest().pending() as f64,
-    );
-    gauge("pregrasp_tracks", "Tracks", state.tracking.track_count() as f64);
-    gauge(
-        "pregrasp_tracker_snapshot_bytes",
-        "Size of the last tracker snapshot written to the store",
-        m.tracker_snapshot_bytes.load(Ordering::Relaxed) as f64,
-    );
-    gauge(
-        "pregrasp_step_rate_hz",
-        "Achieved tracker steps per second (last second)",
-        stats.step_rate_hz,
-    );
-    gauge(
-        "pregrasp_ingest_rate_hz",
-        "Frames accepted per second (last second)",
-        stats.ingest_rate_hz,
-    );
-    gauge(
-        "pregrasp_last_step_latency_seconds",
-        "Latency of the last step",
-        m.last_step_latency_us.load(Ordering::Relaxed) as f64 * 1e-6,
-    );
+    }
     {
         let ring = m.ingest_to_estimate_us.lock().unwrap_or_else(|p| p.into_inner());
         let name = "pregrasp_ingest_to_estimate_seconds";
