@@ -168,53 +168,39 @@ pub fn spawn_builder(state: AppState, stop: Arc<AtomicBool>) -> Option<std::thre
                     .collect();
                 let n = stages.len();
                 for (i, (step, config)) in stages.into_iter().enumerate() {
-                    set_codebook_status(
-                        &state,
-                        &id,
-                        CodebookStatus {
-                            status: if i == 0 {
-                                CodebookState::Building
-                            } else {
-                                CodebookState::Ready
-                            },
-                            progress: i as f64 / n as f64,
-                            grid_step_deg: Some(step),
-                            error: None,
-                        },
-                    );
+                    let status = |status, stages_done: usize, error| CodebookStatus {
+                        status,
+                        progress: stages_done as f64 / n as f64,
+                        grid_step_deg: Some(step),
+                        error,
+                    };
+                    // a later stage keeps the earlier codebook in use: the object stays ready
+                    let before = if i == 0 {
+                        CodebookState::Building
+                    } else {
+                        CodebookState::Ready
+                    };
+                    set_codebook_status(&state, &id, status(before, i, None));
                     let built = match &pool {
                         Some(p) => p.install(|| build(&state, &id, step, &config)),
                         None => build(&state, &id, step, &config),
                     };
-                    match built {
-                        Ok(()) => set_codebook_status(
-                            &state,
-                            &id,
-                            CodebookStatus {
-                                status: CodebookState::Ready,
-                                progress: (i + 1) as f64 / n as f64,
-                                grid_step_deg: Some(step),
-                                error: None,
-                            },
-                        ),
+                    let failed = built.is_err();
+                    let after = match built {
+                        Ok(()) => status(CodebookState::Ready, i + 1, None),
                         Err(e) => {
                             tracing::warn!("codebook of {id} failed: {e}");
-                            set_codebook_status(
-                                &state,
-                                &id,
-                                CodebookStatus {
-                                    status: if i == 0 {
-                                        CodebookState::Failed
-                                    } else {
-                                        CodebookState::Ready
-                                    },
-                                    progress: i as f64 / n as f64,
-                                    grid_step_deg: Some(step),
-                                    error: Some(e),
-                                },
-                            );
-                            break;
+                            let state_now = if i == 0 {
+                                CodebookState::Failed
+                            } else {
+                                CodebookState::Ready
+                            };
+                            status(state_now, i, Some(e))
                         }
+                    };
+                    set_codebook_status(&state, &id, after);
+                    if failed {
+                        break;
                     }
                     if stop.load(Ordering::Relaxed) {
                         return;

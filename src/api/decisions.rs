@@ -130,8 +130,7 @@ impl DecisionCache {
         let mut b = self.banks.lock().unwrap_or_else(|p| p.into_inner());
         b.clear();
         for bank in banks {
-            let id = bank_track(&bank);
-            b.insert(id, Arc::new(bank));
+            b.insert(bank.drawn.track_id, Arc::new(bank));
         }
     }
     /// Forgets everything about a track (stopped) or every track (tracker rebuilt).
@@ -159,10 +158,6 @@ impl DecisionCache {
         let mut a = self.answers.lock().unwrap_or_else(|p| p.into_inner());
         a.insert(track_id, (generation, key, v));
     }
-}
-
-fn bank_track(bank: &SampleBank) -> u64 {
-    bank.drawn.track_id
 }
 
 pub fn router() -> OpenApiRouter<AppState> {

@@ -217,7 +217,7 @@ pub fn start_track(
         .tracker
         .start_track(object_id, &prior)
         .map_err(|e| ApiError::Invalid(format!("prior: {e}")))?;
-    let view = views(state, engine, None, &HashSet::new())
+    let view = views(state, engine, None, &HashSet::new(), Some(id))
         .into_iter()
         .find(|v| v.id == id)
         .ok_or_else(|| ApiError::Internal(format!("track {id} has no view")))?;
@@ -294,12 +294,13 @@ fn status_dto(s: TrackStatus) -> TrackStatusDto {
     }
 }
 
-/// Builds the views of every (not stopped) track after a step.
+/// Builds the views of every (not stopped) track after a step, or of track `only`.
 pub(super) fn views(
     state: &AppState,
     engine: &mut Engine,
     latency_ms: Option<f64>,
     stopped: &HashSet<u64>,
+    only: Option<u64>,
 ) -> Vec<TrackView> {
     let world_from_reference = engine.tracker.world_from_reference();
     let names: BTreeMap<String, String> = state
@@ -311,7 +312,10 @@ pub(super) fn views(
     let truth = state.truth.lock().unwrap_or_else(|p| p.into_inner()).clone();
     let tracks: Vec<_> = engine.tracker.tracks().to_vec();
     let mut out = Vec::new();
-    for t in tracks.iter().filter(|t| !stopped.contains(&t.id)) {
+    for t in tracks
+        .iter()
+        .filter(|t| !stopped.contains(&t.id) && only.is_none_or(|id| id == t.id))
+    {
         let Some(e) = engine.tracker.estimate(t.id) else {
             continue;
         };
@@ -406,9 +410,12 @@ fn step(state: &AppState, set: &FusionSet) {
     }
     let Some(engine) = guard.as_mut() else { return };
     engine.sync_models(state);
-    for id in state.tracking.board().stopped.iter() {
-        engine.tracker.remove_track(*id);
-        engine.pending.retain(|t| t.track.id != *id);
+    // stopped tracks leave the tracker (a stop arriving during the step is filtered below
+    // and removed at the next one)
+    let stopped_before = std::mem::take(&mut state.tracking.board_mut().stopped);
+    for id in stopped_before {
+        engine.tracker.remove_track(id);
+        engine.pending.retain(|t| t.track.id != id);
     }
     let mut frames: Vec<CameraFrame> = set.frames.iter().filter_map(|f| to_camera_frame(state, f)).collect();
     // Detections start tracks: drop those of objects that already have enough live tracks.
@@ -461,7 +468,7 @@ fn step(state: &AppState, set: &FusionSet) {
     let stopped: HashSet<u64> = state.tracking.board().stopped.iter().copied().collect();
     let newest_received = set.frames.iter().map(|f| f.received).max();
     let latency_ms = newest_received.map(|r| r.elapsed().as_secs_f64() * 1e3);
-    let views = views(state, engine, latency_ms, &stopped);
+    let views = views(state, engine, latency_ms, &stopped, None);
     refill_sample_banks(state, engine, &stopped);
     {
         let mut ring = state

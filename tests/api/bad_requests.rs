@@ -24,17 +24,18 @@ fn png16(w: u32, h: u32, value: u16) -> Vec<u8> {
     out.into_inner()
 }
 
+/// Registers the built-in can as object `can`.
+async fn register_can(app: &TestApp) {
+    let ply = pregrasp::mesh::builtin("can").expect("can").to_ply_bytes();
+    let r = app.put_bytes("/objects/can", "application/octet-stream", ply).await;
+    assert_eq!(r.status(), 200);
+}
+
 #[tokio::test]
 async fn bad_requests_get_problem_documents_and_change_nothing() {
     let app = spawn_app().await;
     assert_eq!(app.put_json("/cameras/ext1", &camera_spec(false)).await.status(), 200);
-    let ply = pregrasp::mesh::builtin("can").expect("can").to_ply_bytes();
-    assert_eq!(
-        app.put_bytes("/objects/can", "application/octet-stream", ply)
-            .await
-            .status(),
-        200
-    );
+    register_can(&app).await;
     assert_eq!(
         app.post_json("/cameras/ext1/frames", &frame_json(1_000_000_000, 64, 48, 0.8))
             .await
@@ -244,13 +245,7 @@ async fn a_prior_track_needs_cameras_and_a_known_object() {
     let app = spawn_app().await;
     let prior = json!({"object_id": "can", "world_from_object": {"rotation_xyzw": [0.0, 0.0, 0.0, 1.0], "translation_m": [0.0, 0.0, 0.5]}});
     assert_problem(app.post_json("/tracks", &prior).await, 404).await;
-    let ply = pregrasp::mesh::builtin("can").expect("can").to_ply_bytes();
-    assert_eq!(
-        app.put_bytes("/objects/can", "application/octet-stream", ply)
-            .await
-            .status(),
-        200
-    );
+    register_can(&app).await;
     let p = assert_problem(app.post_json("/tracks", &prior).await, 409).await;
     assert!(p["detail"].as_str().unwrap_or_default().contains("camera"), "{p}");
     assert!(app.get_json("/tracks").await.as_array().expect("tracks").is_empty());
