@@ -2,7 +2,7 @@
 // boxes and every object's particles projected into it (pinhole model, optical frame x right,
 // y down, z forward). Images are reloaded at most every MIN_RELOAD_MS per camera.
 
-import { invertPose, parsePose, projectPixel, transformPoint } from "./math.js";
+import { fitCanvas, invertPose, parsePose, projectPixel, transformPoint } from "./math.js";
 
 const MIN_RELOAD_MS = 400;
 const FRAME_HEIGHT_PX = 190; // matches .camera-frame in style.css
@@ -121,13 +121,7 @@ export class CameraPanel {
   drawOverlay(tracks = this.tracks) {
     this.tracks = tracks ?? [];
     const c = this.overlay;
-    const dpr = window.devicePixelRatio || 1;
-    const w = Math.max(1, Math.round(c.clientWidth * dpr));
-    const h = Math.max(1, Math.round(c.clientHeight * dpr));
-    if (c.width !== w || c.height !== h) {
-      c.width = w;
-      c.height = h;
-    }
+    const { w, h, dpr } = fitCanvas(c);
     const ctx = c.getContext("2d");
     ctx.setTransform(1, 0, 0, 1, 0, 0);
     ctx.clearRect(0, 0, w, h);

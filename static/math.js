@@ -156,3 +156,16 @@ export function apply4(m, p) {
     m[3] * p[0] + m[7] * p[1] + m[11] * p[2] + m[15],
   ];
 }
+
+/** Sizes a canvas's backing store to its CSS size times the device pixel ratio; returns
+ *  `{ w, h, dpr }` (device pixels). */
+export function fitCanvas(canvas) {
+  const dpr = window.devicePixelRatio || 1;
+  const w = Math.max(1, Math.round(canvas.clientWidth * dpr));
+  const h = Math.max(1, Math.round(canvas.clientHeight * dpr));
+  if (canvas.width !== w || canvas.height !== h) {
+    canvas.width = w;
+    canvas.height = h;
+  }
+  return { w, h, dpr };
+}

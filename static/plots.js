@@ -2,6 +2,8 @@
 // Each plot holds named series of [t_s, y] points; `data-plot-points` on the canvas counts
 // the points drawn (a hook for the browser test).
 
+import { fitCanvas } from "./math.js";
+
 const MAX_POINTS_PER_SERIES = 2000;
 
 export class TimePlot {
@@ -99,13 +101,7 @@ export class TimePlot {
     if (!this.dirty && !force) return;
     this.dirty = false;
     const c = this.canvas;
-    const dpr = window.devicePixelRatio || 1;
-    const w = Math.max(1, Math.round(c.clientWidth * dpr));
-    const h = Math.max(1, Math.round(c.clientHeight * dpr));
-    if (c.width !== w || c.height !== h) {
-      c.width = w;
-      c.height = h;
-    }
+    const { w, h, dpr } = fitCanvas(c);
     const ctx = c.getContext("2d");
     ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
     const W = w / dpr;

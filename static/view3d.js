@@ -2,7 +2,7 @@
 // orbit camera (left drag: orbit, right drag or shift+drag: pan, wheel: zoom, double click:
 // fit) and 2D text labels drawn on an overlay canvas. World z is up.
 
-import { apply4, lookAt, mul4, perspective } from "./math.js";
+import { apply4, fitCanvas, lookAt, mul4, perspective } from "./math.js";
 
 const VERTEX_SHADER = `
 attribute vec3 a_position;
@@ -142,13 +142,7 @@ export class View3D {
   draw() {
     this.dirty = false;
     const gl = this.gl;
-    const dpr = window.devicePixelRatio || 1;
-    const w = Math.max(1, Math.round(this.canvas.clientWidth * dpr));
-    const h = Math.max(1, Math.round(this.canvas.clientHeight * dpr));
-    if (this.canvas.width !== w || this.canvas.height !== h) {
-      this.canvas.width = w;
-      this.canvas.height = h;
-    }
+    const { w, h, dpr } = fitCanvas(this.canvas);
     if (!gl) {
       this.draw2d(dpr);
       return;
