@@ -1,14 +1,20 @@
 //! Issue 3's real-data check: on the 10 real frames of `shared/realdata/ycbv_video_0000/bop/`
 //! the mug is tracked from its detection box to within 2 cm (translation) and 1 cm (ADD-S) by
 //! the last frame (met: 1.8 cm / ADD-S 0.8 cm with the support-plane suppression), and its
-//! rotation about its axis (handle hidden) is left ambiguous (not met yet: ignored test).
+//! rotation about its axis (handle hidden) is left ambiguous (not met yet: ignored test). The
+//! last two tests measure why, frame by frame: what the observation model gives the true pose
+//! with the real colours (the floor) and with the mesh's own colours painted over the mug (the
+//! top few bins).
 
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use pregrasp::camera::{ColorImage, DepthImage};
 use pregrasp::dataset::Sequence;
 use pregrasp::eval::report::Mode;
 use pregrasp::eval::run::{EvalConfig, ModelStore, SequenceOutcome, evaluate_sequence};
+use pregrasp::geometry::{Pose, RotationGrid, ray_rotation};
 use pregrasp::render::Renderer;
-use pregrasp::tracker::{CodebookConfig, TrackerConfig};
+use pregrasp::tracker::observation::{ViewImage, observe_view, view_loglik};
+use pregrasp::tracker::{Codebook, CodebookConfig, TrackerConfig};
 use std::path::PathBuf;
 
 fn shared() -> PathBuf {
@@ -58,8 +64,10 @@ fn real_mug_is_tracked_from_its_detection_box() {
 }
 
 #[test]
-#[ignore = "not reached yet: the modes that share the mug's axis spread over 20 deg of spin at the last frame (10 deg grid, \
-            tracker acc 78175ee, support-plane suppression), against the 30 deg asked; run with --ignored"]
+#[ignore = "not reached yet: the modes that share an axis spread over 20 deg of spin at the last frame, against the \
+            30 deg asked. Cause (measured by the two tests below): the real mug's colours do not match the mesh's, so the \
+            true pose gets the likelihood floor in every frame and the track settles on poses tilted by about 30 or 90 \
+            deg, where one frame alone already pins the spin to +-10-15 deg; run with --ignored"]
 fn real_mug_spin_about_its_axis_stays_open() {
     let out = evaluate_real_clip();
     // Ambiguity about the axis (the mesh's z, the mug's height): the distribution must keep
@@ -93,4 +101,180 @@ fn real_mug_spin_about_its_axis_stays_open() {
         est.rotation_modes,
         est.rotation_entropy
     );
+}
+
+/// The similarity the observation model gives the true pose in one real frame (the ground truth
+/// only measures here; it never enters a filter).
+struct TruthMatch {
+    /// Cosine similarity of the true orientation's code to the crop at the true position.
+    c_true: f32,
+    /// Bins whose code is more similar than the true one at the true position.
+    rank: usize,
+    /// The best similarity at any of `positions` and any bin: PoseRBPF's `c_max`.
+    c_max: f32,
+    /// The per-frame log-likelihood of the truth ([`view_loglik`] with the tracker's defaults).
+    loglik: f32,
+}
+
+/// The codebook of the real clip's mug (10-degree grid, the default encoder), in a fresh cache.
+fn real_mug_codebook(seq: &Sequence, renderer: &Renderer) -> (Codebook, RotationGrid, pregrasp::mesh::Mesh) {
+    let mesh = pregrasp::mesh::Mesh::load(&seq.root.join("models/025_mug.ply")).expect("mesh");
+    let grid = RotationGrid::new(10).expect("grid");
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let cb =
+        Codebook::load_or_build(renderer, &mesh, grid, &CodebookConfig::default(), Some(tmp.path())).expect("codebook");
+    (cb, grid, mesh)
+}
+
+/// How the observation model scores the true pose `truth` in one image: the crop at the true
+/// position, and a 5 x 5 x 3 lattice of positions within 2 cm of it (where the tracker's
+/// particles look) for `c_max`.
+fn match_truth(cb: &Codebook, grid: &RotationGrid, img: &ViewImage, truth: &Pose) -> TruthMatch {
+    let t = truth.translation.vector;
+    let mut positions = vec![t];
+    for dx in -2..=2 {
+        for dy in -2..=2 {
+            for dz in [-2, 0, 2] {
+                positions.push(t + Vector3::new(dx as f64, dy as f64, dz as f64) * 0.01);
+            }
+        }
+    }
+    let mut obs = TrackerConfig::default().observation;
+    obs.gate_similarity = 0.0; // measure every frame
+    let mut sim = Vec::new();
+    let ev = observe_view(cb, img, &positions, &obs, &mut sim).expect("the crop at the true position is usable");
+    let n = positions.len();
+    let true_bin = grid.flat_of(&(ray_rotation(&t).inverse() * truth.rotation));
+    let c_true = ev.sim[true_bin * n];
+    let rank = (0..grid.len()).filter(|b| ev.sim[b * n] > c_true).count();
+    TruthMatch {
+        c_true,
+        rank,
+        c_max: ev.best_similarity,
+        loglik: view_loglik(c_true, 1.0 / ev.best_similarity, ev.k, ev.floor),
+    }
+}
+
+/// The per-frame evidence for the truth on the real clip. For the spin about the true axis to
+/// stay open, the truth's neighbourhood must survive each frame's likelihood; it does not: the
+/// true pose gets the floor (-12 nats) in all 10 frames (c 0.15-0.45 against c_max 0.72-0.79,
+/// rank 123-4,525 of 24,624 bins at the true position), while poses 1-2 cm away with the axis
+/// tilted by about 30 or 90 degrees match at 0.72-0.79. The next test shows that the real
+/// colours, not the depth or the crops, are what sinks it.
+#[test]
+#[ignore = "not reached yet: the true pose gets the floor (-12 nats) in 10 of 10 frames (the real mug's colours \
+            do not match the mesh's); run with --ignored --nocapture for the table"]
+fn real_mug_true_pose_is_likely_in_each_frame() {
+    let seq = Sequence::open(&shared().join("realdata/ycbv_video_0000/bop")).expect("real sequence");
+    let renderer = Renderer::new().expect("renderer");
+    let (cb, grid, _) = real_mug_codebook(&seq, &renderer);
+    let frames = seq.frame_ids();
+    let mut likely = 0;
+    for f in &frames {
+        let truth = true_mug(&seq, *f);
+        let (depth, color, intrinsics) = real_images(&seq, *f);
+        let img = ViewImage {
+            intrinsics: &intrinsics,
+            depth: &depth,
+            color: Some(&color),
+        };
+        let m = match_truth(&cb, &grid, &img, &truth);
+        println!(
+            "frame {f}: c(truth) {:.3}, rank {} of {}, c_max within 2 cm {:.3}, log-likelihood of the truth {:.1}",
+            m.c_true,
+            m.rank,
+            grid.len(),
+            m.c_max,
+            m.loglik
+        );
+        if m.loglik >= -2.0 {
+            likely += 1;
+        }
+    }
+    assert!(
+        likely * 10 >= frames.len() * 8,
+        "the true pose is within 2 nats of the best match in {likely} of {} frames",
+        frames.len()
+    );
+}
+
+/// The control: the real depth and crops, with the mesh's own colours painted over the mug's
+/// pixels (where the mesh renders at the true pose), put the true orientation among the top few
+/// of 24,624 bins at the true position in every frame (measured: rank 1-4, c 0.62-0.75, the
+/// truth's log-likelihood -0.8 to -7.0 against -12 with the real colours). So the crops, the
+/// allocentric bins and the real depth agree with the codebook, and the real colours (the real
+/// mug is about 1.7 times brighter in red than the mesh's vertex colours, and shaded
+/// differently) are what the encoder cannot match.
+#[test]
+fn real_mug_true_pose_ranks_first_with_the_meshs_colours() {
+    use pregrasp::render::{ClipRange, SceneObject};
+    let seq = Sequence::open(&shared().join("realdata/ycbv_video_0000/bop")).expect("real sequence");
+    let renderer = Renderer::new().expect("renderer");
+    let (cb, grid, mesh) = real_mug_codebook(&seq, &renderer);
+    let handle = renderer.upload_mesh(&mesh).expect("upload");
+    for f in seq.frame_ids() {
+        let truth = true_mug(&seq, f);
+        let (depth, mut color, intrinsics) = real_images(&seq, f);
+        let rendered = renderer
+            .render_scene(
+                &intrinsics,
+                &Pose::identity(),
+                &[SceneObject {
+                    mesh: handle.clone(),
+                    world_from_object: truth,
+                    instance_id: 1,
+                }],
+                ClipRange::new(0.05, 5.0).expect("clip"),
+            )
+            .expect("render");
+        let (mut real_rgb, mut mesh_rgb, mut count) = ([0f64; 3], [0f64; 3], 0.0);
+        for (i, px) in color.data.iter_mut().enumerate() {
+            if rendered.instance[i] == 1 {
+                for ch in 0..3 {
+                    real_rgb[ch] += px[ch] as f64;
+                    mesh_rgb[ch] += rendered.color.data[i][ch] as f64;
+                }
+                count += 1.0;
+                *px = rendered.color.data[i];
+            }
+        }
+        let img = ViewImage {
+            intrinsics: &intrinsics,
+            depth: &depth,
+            color: Some(&color),
+        };
+        let m = match_truth(&cb, &grid, &img, &truth);
+        println!(
+            "frame {f}: mean mug colour real {:.0?}, mesh {:.0?}; with the mesh's colours: c(truth) {:.3}, rank {}, \
+             c_max within 2 cm {:.3}, log-likelihood of the truth {:.1}",
+            real_rgb.map(|v| v / count),
+            mesh_rgb.map(|v| v / count),
+            m.c_true,
+            m.rank,
+            m.c_max,
+            m.loglik
+        );
+        assert!(
+            m.rank <= 10,
+            "frame {f}: the true orientation ranks {} of {}",
+            m.rank,
+            grid.len()
+        );
+    }
+}
+
+/// The mug's true pose in the camera frame at frame `f` (scoring only).
+fn true_mug(seq: &Sequence, f: u32) -> Pose {
+    pregrasp::eval::truth::objects_in_reference(seq, f)
+        .into_iter()
+        .find(|t| t.name == "025_mug")
+        .expect("mug truth")
+        .reference_from_object
+}
+
+/// Depth, colour and intrinsics of the real camera at frame `f`.
+fn real_images(seq: &Sequence, f: u32) -> (DepthImage, ColorImage, pregrasp::camera::Intrinsics) {
+    let depth = seq.load_depth("cam", f).expect("depth");
+    let color = seq.load_rgb("cam", f).expect("rgb").expect("a colour image");
+    (depth, color, seq.cameras["cam"].frames[&f].intrinsics)
 }

@@ -55,6 +55,10 @@ pub struct CodebookConfig {
     /// Remove the support plane from crops before encoding
     /// ([`crate::tracker::encoder::suppress_support_plane`]), observed and training crops alike.
     pub suppress_plane: bool,
+    /// Partial whitening of the codes: each PCA component scaled by its variance to the
+    /// power `-whiten / 2` (0: plain PCA, 1: full whitening; see the encoder's module docs).
+    #[serde(default)]
+    pub whiten: f64,
 }
 
 impl Default for CodebookConfig {
@@ -73,6 +77,7 @@ impl Default for CodebookConfig {
             crop_jitter_rel: 0.06,
             support_plane_prob: 0.5,
             suppress_plane: true,
+            whiten: 0.5,
         }
     }
 }
@@ -309,6 +314,7 @@ impl Codebook {
             d,
             config.code_dim,
             config.ridge_lambda_rel,
+            config.whiten,
             config.seed,
         )?;
         drop((clean, noisy, nmask));
@@ -438,15 +444,17 @@ fn corrupt(
             }
         }
     }
-    // depth noise (relative noise of far cameras is large in normalised units)
+    // depth noise, per cell: unclamped, then denoised and clamped as observed crops are (a far
+    // camera's crop, filtered, lands in this range)
     let sigma = rng.random_range(0.0..0.35f32);
     if let Ok(noise) = Normal::new(0.0f32, sigma.max(1e-6)) {
         for v in x[..f * f].iter_mut() {
             if *v < 1.0 {
-                *v = (*v + noise.sample(&mut rng)).clamp(0.0, 1.0);
+                *v += noise.sample(&mut rng);
             }
         }
     }
+    crate::tracker::encoder::denoise_depth(layout, &mut x[..f * f], &mask[..f * f]);
     // occluder: a near rectangle
     if rng.random::<f64>() < 0.4 {
         let (w, h) = (rng.random_range(f / 6..f / 2 + 1), rng.random_range(f / 6..f / 2 + 1));
@@ -473,7 +481,10 @@ fn corrupt(
             has_color = false;
             mask[base..].fill(true);
         } else {
-            let gain = rng.random_range(0.7..1.3f32);
+            // exposure and white balance: real cameras never reproduce the scan's texture
+            // colours (the YCB-Video mug reads 1.7x redder than its mesh)
+            let gain = rng.random_range(0.6..1.7f32);
+            let balance: [f32; 3] = std::array::from_fn(|_| rng.random_range(0.8..1.25f32));
             let fc = layout.color_px();
             for ci in 0..fc {
                 for cj in 0..fc {
@@ -488,7 +499,7 @@ fn corrupt(
                         } else if clutter && bg[dk] {
                             x[k] = grey;
                         } else {
-                            x[k] = (x[k] * gain).min(layout.color_weight);
+                            x[k] = (x[k] * gain * balance[ch]).min(layout.color_weight);
                         }
                     }
                 }

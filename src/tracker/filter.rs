@@ -80,7 +80,7 @@ impl Default for TrackerConfig {
             only_reference_camera: false,
             observation: ObservationConfig::default(),
             estimate: EstimateConfig::default(),
-            lost_similarity: 0.75,
+            lost_similarity: 0.62,
             lost_after_steps: 5,
             brownian_sigma_m: 0.005,
             odometry_noise: OdometryNoise::default(),

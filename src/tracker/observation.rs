@@ -31,7 +31,8 @@ pub struct ObservationConfig {
     pub sigma: f32,
     /// Lowest log-likelihood one view can give a bin.
     pub loglik_floor: f32,
-    /// A view whose best absolute similarity is below this does not see the object.
+    /// A view whose best absolute similarity is below this does not see the object (with the
+    /// default codes, whitened at 0.5, a view that sees the object reaches 0.6-0.9).
     pub gate_similarity: f32,
     /// Sigma (m) of the depth check at 1 m; it grows linearly with the distance.
     pub depth_sigma_m: f32,
@@ -44,7 +45,7 @@ impl Default for ObservationConfig {
         Self {
             sigma: 0.06,
             loglik_floor: -12.0,
-            gate_similarity: 0.55,
+            gate_similarity: 0.45,
             depth_sigma_m: 0.015,
             depth_floor: -6.0,
         }
