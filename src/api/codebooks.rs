@@ -143,6 +143,25 @@ fn builder_pool() -> Option<rayon::ThreadPool> {
         .ok()
 }
 
+/// The next build, as (object, stage): every object's first (coarse) stage before any
+/// object's later stage, so that all objects become trackable before a fine grid starts (a
+/// full codebook takes 15-30 s on 2 cores). An object whose stage failed gets no later stage.
+fn next_stage(reg: &super::Registry, n_stages: usize) -> Option<(String, usize)> {
+    let pending = reg
+        .objects
+        .values()
+        .find(|o| o.info.codebook.status == CodebookState::Pending)
+        .map(|o| (o.info.id.clone(), 0));
+    pending.or_else(|| {
+        reg.objects.values().find_map(|o| {
+            let c = &o.info.codebook;
+            let done = (c.progress * n_stages as f64).round() as usize;
+            (c.status == CodebookState::Ready && c.error.is_none() && (1..n_stages).contains(&done))
+                .then(|| (o.info.id.clone(), done))
+        })
+    })
+}
+
 /// Starts the builder thread; it stops when `stop` is set.
 pub fn spawn_builder(state: AppState, stop: Arc<AtomicBool>) -> Option<std::thread::JoinHandle<()>> {
     std::thread::Builder::new()
@@ -151,61 +170,48 @@ pub fn spawn_builder(state: AppState, stop: Arc<AtomicBool>) -> Option<std::thre
             lower_thread_priority();
             let pool = builder_pool();
             while !stop.load(Ordering::Relaxed) {
-                let next = {
-                    let reg = state.registry();
-                    reg.objects
-                        .values()
-                        .find(|o| o.info.codebook.status == CodebookState::Pending)
-                        .map(|o| o.info.id.clone())
-                };
-                let Some(id) = next else {
-                    std::thread::sleep(Duration::from_millis(100));
-                    continue;
-                };
                 let plan = state.config.codebooks.clone();
                 let stages: Vec<(u32, CodebookConfig)> = std::iter::once((plan.coarse_step_deg, plan.coarse.clone()))
                     .chain(plan.fine.clone())
                     .collect();
                 let n = stages.len();
-                for (i, (step, config)) in stages.into_iter().enumerate() {
-                    let status = |status, stages_done: usize, error| CodebookStatus {
-                        status,
-                        progress: stages_done as f64 / n as f64,
-                        grid_step_deg: Some(step),
-                        error,
-                    };
-                    // a later stage keeps the earlier codebook in use: the object stays ready
-                    let before = if i == 0 {
-                        CodebookState::Building
-                    } else {
-                        CodebookState::Ready
-                    };
-                    set_codebook_status(&state, &id, status(before, i, None));
-                    let built = match &pool {
-                        Some(p) => p.install(|| build(&state, &id, step, &config)),
-                        None => build(&state, &id, step, &config),
-                    };
-                    let failed = built.is_err();
-                    let after = match built {
-                        Ok(()) => status(CodebookState::Ready, i + 1, None),
-                        Err(e) => {
-                            tracing::warn!("codebook of {id} failed: {e}");
-                            let state_now = if i == 0 {
-                                CodebookState::Failed
-                            } else {
-                                CodebookState::Ready
-                            };
-                            status(state_now, i, Some(e))
-                        }
-                    };
-                    set_codebook_status(&state, &id, after);
-                    if failed {
-                        break;
+                let next = next_stage(&state.registry(), n);
+                let Some((id, i)) = next else {
+                    std::thread::sleep(Duration::from_millis(100));
+                    continue;
+                };
+                let (step, config) = &stages[i];
+                let status = |status, stages_done: usize, error| CodebookStatus {
+                    status,
+                    progress: stages_done as f64 / n as f64,
+                    grid_step_deg: Some(*step),
+                    error,
+                };
+                // a later stage keeps the earlier codebook in use: the object stays ready
+                let before = if i == 0 {
+                    CodebookState::Building
+                } else {
+                    CodebookState::Ready
+                };
+                set_codebook_status(&state, &id, status(before, i, None));
+                let built = match &pool {
+                    Some(p) => p.install(|| build(&state, &id, *step, config)),
+                    None => build(&state, &id, *step, config),
+                };
+                let after = match built {
+                    Ok(()) => status(CodebookState::Ready, i + 1, None),
+                    Err(e) => {
+                        tracing::warn!("codebook of {id} failed: {e}");
+                        let state_now = if i == 0 {
+                            CodebookState::Failed
+                        } else {
+                            CodebookState::Ready
+                        };
+                        // the error stops later stages (see `next_stage`)
+                        status(state_now, i, Some(e))
                     }
-                    if stop.load(Ordering::Relaxed) {
-                        return;
-                    }
-                }
+                };
+                set_codebook_status(&state, &id, after);
             }
         })
         .ok()
@@ -214,6 +220,51 @@ pub fn spawn_builder(state: AppState, stop: Arc<AtomicBool>) -> Option<std::thre
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_coarse_codebook_is_built_before_any_fine_one() {
+        let object = |id: &str, status: CodebookState, stages_done: usize, error: Option<&str>| {
+            let info = crate::api::objects::ObjectInfo {
+                id: id.into(),
+                name: id.into(),
+                n_vertices: 8,
+                n_triangles: 12,
+                diameter_m: 0.1,
+                content_hash: "h".into(),
+                codebook: CodebookStatus {
+                    status,
+                    progress: stages_done as f64 / 2.0,
+                    grid_step_deg: Some(10),
+                    error: error.map(String::from),
+                },
+            };
+            let mesh = Arc::new(crate::mesh::builtin("box").expect("builtin"));
+            (id.to_string(), crate::api::objects::ObjectEntry { info, mesh })
+        };
+        let mut reg = crate::api::Registry::default();
+        // "a" has its coarse codebook, "b" and "c" none yet: "b" (then "c") first
+        reg.objects.extend([
+            object("a", CodebookState::Ready, 1, None),
+            object("b", CodebookState::Pending, 0, None),
+            object("c", CodebookState::Pending, 0, None),
+        ]);
+        assert_eq!(next_stage(&reg, 2), Some(("b".into(), 0)));
+        reg.objects.extend([
+            object("b", CodebookState::Ready, 1, None),
+            object("c", CodebookState::Ready, 1, None),
+        ]);
+        // all coarse: now the fine stage, of the first object that still needs it
+        assert_eq!(next_stage(&reg, 2), Some(("a".into(), 1)));
+        reg.objects.extend([
+            object("a", CodebookState::Ready, 2, None),
+            object("b", CodebookState::Ready, 1, Some("render failed")),
+        ]);
+        assert_eq!(next_stage(&reg, 2), Some(("c".into(), 1)));
+        reg.objects.extend([object("c", CodebookState::Ready, 2, None)]);
+        // nothing left (a failed stage is not retried); one stage only: nothing after coarse
+        assert_eq!(next_stage(&reg, 2), None);
+        assert_eq!(next_stage(&reg, 1), None);
+    }
 
     #[test]
     #[cfg(target_os = "linux")]
