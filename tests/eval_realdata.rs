@@ -64,10 +64,10 @@ fn real_mug_is_tracked_from_its_detection_box() {
 }
 
 #[test]
-#[ignore = "not reached yet: the modes that share an axis spread over 20 deg of spin at the last frame, against the \
-            30 deg asked. Cause (measured by the two tests below): the real mug's colours do not match the mesh's, so the \
-            true pose gets the likelihood floor in every frame and the track settles on poses tilted by about 30 or 90 \
-            deg, where one frame alone already pins the spin to +-10-15 deg; run with --ignored"]
+#[ignore = "not reached yet: the modes that share an axis spread over 18 deg of spin at the last frame, against the \
+            30 deg asked (encoder v3: the distribution is broad, entropy 6 nats, but over tilted axes). Cause (measured \
+            by the two tests below): the real mug's colours do not match the mesh's, so the true pose is near the floor \
+            in every frame and the track settles on poses tilted by about 30 or 90 deg; run with --ignored"]
 fn real_mug_spin_about_its_axis_stays_open() {
     let out = evaluate_real_clip();
     // Ambiguity about the axis (the mesh's z, the mug's height): the distribution must keep
@@ -160,10 +160,13 @@ fn match_truth(cb: &Codebook, grid: &RotationGrid, img: &ViewImage, truth: &Pose
 /// true pose gets the floor (-12 nats) in all 10 frames (c 0.15-0.45 against c_max 0.72-0.79,
 /// rank 123-4,525 of 24,624 bins at the true position), while poses 1-2 cm away with the axis
 /// tilted by about 30 or 90 degrees match at 0.72-0.79. The next test shows that the real
-/// colours, not the depth or the crops, are what sinks it.
+/// colours, not the depth or the crops, are what sinks it. Encoder v3 (exposure and white
+/// balance in training, whitened codes): c 0.31-0.44 against 0.58-0.63, rank 24-443, and the
+/// view's weak best match now weakens its evidence (7-9 nats below the best, not the floor).
 #[test]
-#[ignore = "not reached yet: the true pose gets the floor (-12 nats) in 10 of 10 frames (the real mug's colours \
-            do not match the mesh's); run with --ignored --nocapture for the table"]
+#[ignore = "not reached yet: the true pose is 7-9 nats below the best match in 10 of 10 frames (encoder v3: ranks \
+            24-443 of 24,624, c 0.31-0.44 against 0.58-0.63; the real mug's colours do not match the mesh's); run \
+            with --ignored --nocapture for the table"]
 fn real_mug_true_pose_is_likely_in_each_frame() {
     let seq = Sequence::open(&shared().join("realdata/ycbv_video_0000/bop")).expect("real sequence");
     let renderer = Renderer::new().expect("renderer");

@@ -9,6 +9,15 @@
 //! with the others tempers the fused distribution instead of wiping it out). A view whose
 //! absolute best similarity is below `gate_similarity` does not see the object and adds
 //! nothing. Particles that do not project into a gated view get the floor.
+//!
+//! A view's log-likelihood (and its floor) is scaled by its *evidence strength*,
+//! `(best - gate) / (full - gate)` clamped to 0..1, with `best` its best absolute similarity.
+//! The relative `c / c_max` ranks whatever a view sees with the same confidence, a crop of
+//! noise included: a far camera seeing a thin banana through depth noise larger than the
+//! banana matched its true pose at 0.1-0.3 and a flipped one at 0.55, and multiplied that in
+//! at full strength. Measured on generated scenes (10-degree grid): orientation error
+//! 27.4 -> 20.4 deg, log-likelihood of the truth -5.7 -> -3.9; on the real mug the
+//! distribution's entropy rose from 2.4 to 6 nats (its poor matches no longer pick one pose).
 
 use crate::camera::{ColorImage, DepthImage, Intrinsics};
 use crate::tracker::codebook::Codebook;
@@ -34,6 +43,12 @@ pub struct ObservationConfig {
     /// A view whose best absolute similarity is below this does not see the object (with the
     /// default codes, whitened at 0.5, a view that sees the object reaches 0.6-0.9).
     pub gate_similarity: f32,
+    /// A view's log-likelihood is scaled by `(best - gate) / (full - gate)` (clamped to 0..1):
+    /// a view that barely matches the object anywhere (a far camera seeing a thin object
+    /// through depth noise) is weak evidence, not the confident ranking of noise that the
+    /// relative `c / c_max` alone would make of it.
+    #[serde(default = "default_full_similarity")]
+    pub full_similarity: f32,
     /// Sigma (m) of the depth check at 1 m; it grows linearly with the distance.
     pub depth_sigma_m: f32,
     /// Lowest log term of the depth check per view.
@@ -46,10 +61,22 @@ impl Default for ObservationConfig {
             sigma: 0.06,
             loglik_floor: -12.0,
             gate_similarity: 0.45,
+            full_similarity: default_full_similarity(),
             depth_sigma_m: 0.015,
             depth_floor: -6.0,
         }
     }
+}
+
+fn default_full_similarity() -> f32 {
+    0.85
+}
+
+/// How much of its log-likelihood a view whose best similarity is `best` contributes (see
+/// [`ObservationConfig::full_similarity`]): 0 at the gate, 1 from `full_similarity` up.
+pub fn evidence_strength(best: f32, config: &ObservationConfig) -> f32 {
+    let span = (config.full_similarity - config.gate_similarity).max(1e-6);
+    ((best - config.gate_similarity) / span).clamp(0.0, 1.0)
 }
 
 /// What one view says about one object's particles.
@@ -202,6 +229,7 @@ pub fn observe_view(
     if best.is_nan() || best < config.gate_similarity {
         return None;
     }
+    let strength = evidence_strength(best, config);
     // each particle's best bin (0 when none: a crop of zeros)
     let arg: Vec<usize> = arg
         .into_iter()
@@ -229,8 +257,8 @@ pub fn observe_view(
     Some(ViewEvidence {
         sim: std::mem::take(sim),
         inv_best,
-        k: -0.5 / (config.sigma * config.sigma),
-        floor: config.loglik_floor,
+        k: -0.5 / (config.sigma * config.sigma) * strength,
+        floor: config.loglik_floor * strength,
         depth_log,
         best_similarity: best,
         valid,
@@ -284,4 +312,31 @@ pub fn add_loglik(dst: &mut [f32], ev: &ViewEvidence, map: Option<&[u32]>, n: us
             ev.loglik_row(&ev.sim[src_b * n..(src_b + 1) * n], row, assign);
         }
     });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn weak_matches_are_weak_evidence() {
+        let c = ObservationConfig::default();
+        assert_eq!(evidence_strength(c.gate_similarity, &c), 0.0);
+        assert_eq!(evidence_strength(c.full_similarity, &c), 1.0);
+        assert_eq!(evidence_strength(0.99, &c), 1.0);
+        let mid = evidence_strength(0.5 * (c.gate_similarity + c.full_similarity), &c);
+        assert!((mid - 0.5).abs() < 1e-5, "{mid}");
+        // the contrast a view makes between a good and a poor bin shrinks with its strength
+        let contrast = |best: f32| {
+            let s = evidence_strength(best, &c);
+            let (k, floor) = (-0.5 / (c.sigma * c.sigma) * s, c.loglik_floor * s);
+            view_loglik(best, 1.0 / best, k, floor) - view_loglik(0.9 * best, 1.0 / best, k, floor)
+        };
+        assert!(
+            contrast(0.55) < 0.5 * contrast(0.9),
+            "{} vs {}",
+            contrast(0.55),
+            contrast(0.9)
+        );
+    }
 }
