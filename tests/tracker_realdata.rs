@@ -131,11 +131,11 @@ fn real_mug_is_tracked_from_its_detection_box() {
     }
     // The target is 0.02 m / 0.01 m (met with the default codebook: see
     // tests/eval_realdata.rs). This test's coarse codebook (10-degree grid, 16 x 16 features)
-    // is a guard against drifting off the mug, not the target: the real mug's colours do not
-    // match its mesh's, so no orientation fits well (`eval_realdata::
-    // real_mug_true_pose_is_likely_in_each_frame`) and the last frame's error depends on which
-    // near-fit the track settles on. Measured over encoder variants: 0.0175-0.026 m /
-    // 0.0086-0.015 m; encoder v3 (whitened codes, far-view denoising): 0.0259 m / 0.0128 m.
-    assert!(last.0 < 0.03, "translation error at the last frame {}", last.0);
-    assert!(last.1 < 0.016, "ADD-S at the last frame {}", last.1);
+    // guards the same level with some margin. The real mug's colours do not match its mesh's,
+    // so no orientation fits well (`eval_realdata::real_mug_true_pose_is_likely_in_each_frame`)
+    // and the last frame's error depends on which near-fit the track settles on: 0.0175-0.026 m
+    // over encoder variants; with the evidence strength (weak matches weigh less) 0.0126 m /
+    // ADD-S 0.0094 m.
+    assert!(last.0 < 0.025, "translation error at the last frame {}", last.0);
+    assert!(last.1 < 0.012, "ADD-S at the last frame {}", last.1);
 }
