@@ -129,7 +129,17 @@ fn real_mug_codebook(seq: &Sequence, renderer: &Renderer) -> (Codebook, Rotation
 /// How the observation model scores the true pose `truth` in one image: the crop at the true
 /// position, and a 5 x 5 x 3 lattice of positions within 2 cm of it (where the tracker's
 /// particles look) for `c_max`.
-fn match_truth(cb: &Codebook, grid: &RotationGrid, img: &ViewImage, truth: &Pose) -> TruthMatch {
+fn match_truth(
+    cb: &Codebook,
+    grid: &RotationGrid,
+    (depth, color, intrinsics): (&DepthImage, &ColorImage, &pregrasp::camera::Intrinsics),
+    truth: &Pose,
+) -> TruthMatch {
+    let img = &ViewImage {
+        intrinsics,
+        depth,
+        color: Some(color),
+    };
     let t = truth.translation.vector;
     let mut positions = vec![t];
     for dx in -2..=2 {
@@ -176,12 +186,7 @@ fn real_mug_true_pose_is_likely_in_each_frame() {
     for f in &frames {
         let truth = true_mug(&seq, *f);
         let (depth, color, intrinsics) = real_images(&seq, *f);
-        let img = ViewImage {
-            intrinsics: &intrinsics,
-            depth: &depth,
-            color: Some(&color),
-        };
-        let m = match_truth(&cb, &grid, &img, &truth);
+        let m = match_truth(&cb, &grid, (&depth, &color, &intrinsics), &truth);
         println!(
             "frame {f}: c(truth) {:.3}, rank {} of {}, c_max within 2 cm {:.3}, log-likelihood of the truth {:.1}",
             m.c_true,
@@ -241,12 +246,7 @@ fn real_mug_true_pose_ranks_first_with_the_meshs_colours() {
                 *px = rendered.color.data[i];
             }
         }
-        let img = ViewImage {
-            intrinsics: &intrinsics,
-            depth: &depth,
-            color: Some(&color),
-        };
-        let m = match_truth(&cb, &grid, &img, &truth);
+        let m = match_truth(&cb, &grid, (&depth, &color, &intrinsics), &truth);
         println!(
             "frame {f}: mean mug colour real {:.0?}, mesh {:.0?}; with the mesh's colours: c(truth) {:.3}, rank {}, \
              c_max within 2 cm {:.3}, log-likelihood of the truth {:.1}",
