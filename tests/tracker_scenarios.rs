@@ -6,7 +6,7 @@ mod tracker_support;
 
 use nalgebra::{UnitQuaternion, Vector3};
 use pregrasp::geometry::Pose;
-use pregrasp::tracker::{CameraMount, RobotOdometry, TrackStatus, Tracker, TrackerConfig};
+use pregrasp::tracker::{CameraMount, Detection, RobotOdometry, TrackStatus, Tracker, TrackerConfig};
 use std::collections::BTreeMap;
 use tracker_support::*;
 
@@ -404,4 +404,40 @@ fn a_conflicting_view_does_not_wipe_out_the_distribution() {
     // without the floor the conflicting view costs the truth far more
     let (_, ll_nofloor) = run(-1e6);
     assert!(ll > ll_nofloor + 1.0, "floored {ll} vs unfloored {ll_nofloor}");
+}
+
+#[test]
+fn a_detection_that_matches_no_track_opens_one_only_below_the_cap() {
+    let mesh = pregrasp::mesh::builtin("box").unwrap();
+    let cb = coarse_codebook(&mesh);
+    let cam = look_at([-0.9, -0.2, 0.7], [0.0, 0.0, 0.08]);
+    let scene = Scene::new(vec![("box".into(), mesh.clone(), on_table(&mesh, 0.0, 0.0, 0.3))]);
+    let tracks_after = |cap: usize| -> usize {
+        let mut cams = BTreeMap::new();
+        cams.insert("ext1".to_string(), CameraMount::Stationary { world_from_camera: cam });
+        let config = TrackerConfig {
+            max_tracks_per_object: cap,
+            ..TrackerConfig::default()
+        };
+        let mut tracker = Tracker::new(config, cams, "ext1".into());
+        tracker.add_object_model("box", mesh.clone(), cb.clone());
+        for step in 0..3u64 {
+            tracker
+                .step(&[frame("ext1", &cam, &scene, step == 0, true, 0.01, step)], None)
+                .unwrap();
+        }
+        assert_eq!(tracker.tracks().len(), 1);
+        // a second box reported far from the tracked one (a detector's false positive, or a
+        // camera that disagrees on where the object is)
+        let mut f = frame("ext1", &cam, &scene, true, true, 0.01, 3);
+        f.detections.push(Detection {
+            object: "box".into(),
+            bbox_xywh_px: [4.0, 4.0, 20.0, 20.0],
+            score: 1.0,
+        });
+        tracker.step(&[f], None).unwrap();
+        tracker.tracks().len()
+    };
+    assert_eq!(tracks_after(0), 2, "no cap: a new instance");
+    assert_eq!(tracks_after(1), 1, "cap 1: the object keeps one track");
 }

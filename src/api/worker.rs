@@ -117,7 +117,12 @@ impl Engine {
                 (c.id.clone(), m)
             })
             .collect();
-        let mut tracker = Tracker::new(state.config.tracker.clone(), mounts, reference);
+        // the detections' cap (see `max_live_tracks_per_object`) also holds within a step
+        let config = crate::tracker::TrackerConfig {
+            max_tracks_per_object: state.config.max_live_tracks_per_object,
+            ..state.config.tracker.clone()
+        };
+        let mut tracker = Tracker::new(config, mounts, reference);
         // The previous run's tracks come back as their models become ready (sync_models);
         // only tracks still listed (not stopped) are restored.
         let mut pending = Vec::new();

@@ -69,6 +69,13 @@ pub struct TrackerConfig {
     /// A detection belongs to a track when the track's mean projects inside its box grown by
     /// this share of its side.
     pub association_margin_rel: f64,
+    /// A detection that matches no track of its object opens a new track only while the
+    /// object has fewer tracks than this that are not lost (0: no limit, every unmatched
+    /// detection is a new instance). A lost track is restarted first either way. With a limit,
+    /// two cameras whose first detections disagree on the position (or a track that drifted
+    /// out of its detection's box) cannot duplicate a single object.
+    #[serde(default)]
+    pub max_tracks_per_object: usize,
     pub seed: u64,
 }
 
@@ -91,6 +98,7 @@ impl Default for TrackerConfig {
             init_uv_jitter_rel: 0.1,
             init_depth_sigma_m: 0.03,
             association_margin_rel: 0.3,
+            max_tracks_per_object: 0,
             seed: 1,
         }
     }
@@ -481,9 +489,16 @@ impl Tracker {
                 }
             }
             None => {
-                let parts = self.init_particles(mi, frame, det, view_from_ref, ci);
                 let lost = (0..self.states.len())
                     .find(|&i| self.states[i].model == mi && self.tracks[i].status == TrackStatus::Lost);
+                let cap = self.config.max_tracks_per_object;
+                let open = (0..self.states.len())
+                    .filter(|&i| self.states[i].model == mi && self.tracks[i].status != TrackStatus::Lost)
+                    .count();
+                if lost.is_none() && cap > 0 && open >= cap {
+                    return;
+                }
+                let parts = self.init_particles(mi, frame, det, view_from_ref, ci);
                 let i = match lost {
                     Some(i) => {
                         report.tracks_reinitialised.push(self.tracks[i].id);
