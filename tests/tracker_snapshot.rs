@@ -16,7 +16,8 @@ fn rig() -> (pregrasp::geometry::Pose, BTreeMap<String, CameraMount>) {
     (cam, cams)
 }
 
-/// A box on the table, tracked for 5 steps by one stationary camera (10-degree codebook).
+/// A box on the table seen by one stationary camera, with a tracker that knows the box
+/// (10-degree codebook); [`tracked_box`] has tracked it for 5 steps.
 struct TrackedBox {
     mesh: pregrasp::mesh::Mesh,
     cb: std::sync::Arc<pregrasp::tracker::Codebook>,
@@ -27,7 +28,7 @@ struct TrackedBox {
     tracker: Tracker,
 }
 
-fn tracked_box() -> TrackedBox {
+fn untracked_box() -> TrackedBox {
     let mesh = pregrasp::mesh::builtin("box").unwrap();
     let cb = coarse_codebook(&mesh);
     let truth_world = on_table(&mesh, 0.05, 0.02, 0.6);
@@ -35,10 +36,6 @@ fn tracked_box() -> TrackedBox {
     let (cam, cams) = rig();
     let mut tracker = Tracker::new(TrackerConfig::default(), cams.clone(), "ext1".into());
     tracker.add_object_model("box", mesh.clone(), cb.clone());
-    for step in 0..5 {
-        let f = frame("ext1", &cam, &scene, step == 0, true, 0.01, step);
-        tracker.step(&[f], None).unwrap();
-    }
     TrackedBox {
         truth: cam.inverse() * truth_world,
         mesh,
@@ -48,6 +45,15 @@ fn tracked_box() -> TrackedBox {
         cams,
         tracker,
     }
+}
+
+fn tracked_box() -> TrackedBox {
+    let mut b = untracked_box();
+    for step in 0..5 {
+        let f = frame("ext1", &b.cam, &b.scene, step == 0, true, 0.01, step);
+        b.tracker.step(&[f], None).unwrap();
+    }
+    b
 }
 
 /// The model's codebook on another grid.
@@ -69,14 +75,13 @@ fn codebook_on(
 
 #[test]
 fn a_prior_starts_a_track_with_its_pose_and_spread_then_evidence_takes_over() {
-    let mesh = pregrasp::mesh::builtin("box").unwrap();
-    let cb = coarse_codebook(&mesh);
-    let truth_world = on_table(&mesh, 0.05, 0.02, 0.6);
-    let scene = Scene::new(vec![("box".into(), mesh.clone(), truth_world)]);
-    let (cam, cams) = rig();
-    let mut tracker = Tracker::new(TrackerConfig::default(), cams, "ext1".into());
-    tracker.add_object_model("box", mesh.clone(), cb);
-    let truth = cam.inverse() * truth_world;
+    let TrackedBox {
+        scene,
+        cam,
+        truth,
+        mut tracker,
+        ..
+    } = untracked_box();
     // The prior: 4 cm off the truth, rotation 30 degrees off with a 20-degree spread.
     let mut prior_pose = truth;
     prior_pose.translation.vector += nalgebra::Vector3::new(0.04, 0.0, 0.0);

@@ -492,10 +492,13 @@ impl Tracker {
                 let lost = (0..self.states.len())
                     .find(|&i| self.states[i].model == mi && self.tracks[i].status == TrackStatus::Lost);
                 let cap = self.config.max_tracks_per_object;
-                let open = (0..self.states.len())
-                    .filter(|&i| self.states[i].model == mi && self.tracks[i].status != TrackStatus::Lost)
-                    .count();
-                if lost.is_none() && cap > 0 && open >= cap {
+                let at_cap = || {
+                    (0..self.states.len())
+                        .filter(|&i| self.states[i].model == mi && self.tracks[i].status != TrackStatus::Lost)
+                        .count()
+                        >= cap
+                };
+                if lost.is_none() && cap > 0 && at_cap() {
                     return;
                 }
                 let parts = self.init_particles(mi, frame, det, view_from_ref, ci);
