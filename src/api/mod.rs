@@ -59,9 +59,10 @@ pub struct ApiConfig {
     pub window_ns: i64,
     /// Unprocessed frames kept per camera before the oldest is dropped (the bounded queue).
     pub max_pending_per_camera: usize,
-    /// Detections of an object are passed to the tracker only while it has fewer than this
-    /// many live (not lost) tracks of that object: a detection starts a track, it does not
-    /// duplicate one. Raise it for scenes with several instances of one object.
+    /// A detection that matches no track opens a new one only while its object has fewer than
+    /// this many live (not lost) tracks (the tracker's `max_tracks_per_object`): a detection
+    /// starts a track, it does not duplicate one. Raise it for scenes with several instances
+    /// of one object.
     pub max_live_tracks_per_object: usize,
     /// Tracker settings.
     pub tracker: crate::tracker::TrackerConfig,

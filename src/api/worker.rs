@@ -117,7 +117,8 @@ impl Engine {
                 (c.id.clone(), m)
             })
             .collect();
-        // the detections' cap (see `max_live_tracks_per_object`) also holds within a step
+        // the one place the service's cap is enforced: matched detections still reach their
+        // tracks (a second camera joins a young track), unmatched ones open no extra track
         let config = crate::tracker::TrackerConfig {
             max_tracks_per_object: state.config.max_live_tracks_per_object,
             ..state.config.tracker.clone()
@@ -422,19 +423,7 @@ fn step(state: &AppState, set: &FusionSet) {
         engine.tracker.remove_track(id);
         engine.pending.retain(|t| t.track.id != id);
     }
-    let mut frames: Vec<CameraFrame> = set.frames.iter().filter_map(|f| to_camera_frame(state, f)).collect();
-    // Detections start tracks: drop those of objects that already have enough live tracks.
-    let mut live: BTreeMap<&str, usize> = BTreeMap::new();
-    for t in engine.tracker.tracks() {
-        if t.status != TrackStatus::Lost {
-            *live.entry(t.object.as_str()).or_default() += 1;
-        }
-    }
-    let max_live = state.config.max_live_tracks_per_object;
-    for f in &mut frames {
-        f.detections
-            .retain(|d| live.get(d.object.as_str()).copied().unwrap_or(0) < max_live);
-    }
+    let frames: Vec<CameraFrame> = set.frames.iter().filter_map(|f| to_camera_frame(state, f)).collect();
     if frames.is_empty() {
         return;
     }
