@@ -441,3 +441,85 @@ fn a_detection_that_matches_no_track_opens_one_only_below_the_cap() {
     assert_eq!(tracks_after(0), 2, "no cap: a new instance");
     assert_eq!(tracks_after(1), 1, "cap 1: the object keeps one track");
 }
+
+#[test]
+fn a_second_camera_joins_the_track_at_its_first_detection_under_the_cap() {
+    // The service caps tracks per object at one and steps whenever any camera has a frame, so
+    // a second camera's first detection of a box usually arrives after the first camera has
+    // already made the track `Tracking`. It must add that camera's component to the track
+    // (one component per camera), not be dropped and not open a second track.
+    let mesh = pregrasp::mesh::builtin("box").unwrap();
+    let cb = coarse_codebook(&mesh);
+    let cam1 = look_at([-0.9, -0.2, 0.7], [0.0, 0.0, 0.08]);
+    let cam2 = look_at([0.3, -0.9, 0.7], [0.0, 0.0, 0.08]);
+    let scene = Scene::new(vec![("box".into(), mesh.clone(), on_table(&mesh, 0.0, 0.0, 0.3))]);
+    let mut cams = BTreeMap::new();
+    cams.insert(
+        "ext1".to_string(),
+        CameraMount::Stationary {
+            world_from_camera: cam1,
+        },
+    );
+    cams.insert(
+        "ext2".to_string(),
+        CameraMount::Stationary {
+            world_from_camera: cam2,
+        },
+    );
+    let config = TrackerConfig {
+        max_tracks_per_object: 1,
+        ..TrackerConfig::default()
+    };
+    let mut tracker = Tracker::new(config, cams, "ext1".into());
+    tracker.add_object_model("box", mesh.clone(), cb);
+    tracker
+        .step(&[frame("ext1", &cam1, &scene, true, true, 0.01, 0)], None)
+        .unwrap();
+    assert_eq!(tracker.tracks().len(), 1);
+    let id = tracker.tracks()[0].id;
+    let cameras = |t: &Tracker| -> Vec<String> {
+        t.estimate(id)
+            .unwrap()
+            .components
+            .iter()
+            .map(|c| c.camera.clone())
+            .collect()
+    };
+    assert_eq!(cameras(&tracker), vec!["ext1".to_string()]);
+    tracker
+        .step(
+            &[
+                frame("ext1", &cam1, &scene, true, true, 0.01, 1),
+                frame("ext2", &cam2, &scene, true, true, 0.01, 1),
+            ],
+            None,
+        )
+        .unwrap();
+    assert_eq!(tracker.tracks().len(), 1, "one box, one track");
+    let joined = cameras(&tracker);
+    assert!(joined.contains(&"ext2".to_string()), "ext2 joined: {joined:?}");
+    assert!(joined.contains(&"ext1".to_string()), "ext1 kept: {joined:?}");
+    // both cameras' evidence moved the track, which stays on the box
+    let truth = on_table(&mesh, 0.0, 0.0, 0.3);
+    for s in 2..5u64 {
+        tracker
+            .step(
+                &[
+                    frame("ext1", &cam1, &scene, true, true, 0.01, s),
+                    frame("ext2", &cam2, &scene, true, true, 0.01, s),
+                ],
+                None,
+            )
+            .unwrap();
+    }
+    assert_eq!(tracker.tracks().len(), 1);
+    let est = tracker.estimate(id).unwrap();
+    let ref_from_world = cam1.inverse();
+    let err = translation_error(&est.reference_from_object, &(ref_from_world * truth));
+    assert!(err < 0.03, "translation error {err} m");
+    assert!(
+        tracker.tracks()[0].seen_by.len() == 2,
+        "{:?}",
+        tracker.tracks()[0].seen_by
+    );
+}

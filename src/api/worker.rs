@@ -118,7 +118,8 @@ impl Engine {
             })
             .collect();
         // the one place the service's cap is enforced: matched detections still reach their
-        // tracks (a second camera joins a young track), unmatched ones open no extra track
+        // tracks (a camera joins a track at its first detection of it), unmatched ones open
+        // no extra track
         let config = crate::tracker::TrackerConfig {
             max_tracks_per_object: state.config.max_live_tracks_per_object,
             ..state.config.tracker.clone()

@@ -407,10 +407,9 @@ impl Tracker {
             .collect();
 
         // 2. detections
-        let mut fresh: Vec<usize> = Vec::new();
         for (frame, view_from_ref, ci) in &views {
             for det in &frame.detections {
-                self.handle_detection(frame, det, view_from_ref, *ci, &mut report, &mut fresh);
+                self.handle_detection(frame, det, view_from_ref, *ci, &mut report);
             }
         }
 
@@ -453,7 +452,6 @@ impl Tracker {
         view_from_ref: &Pose,
         ci: usize,
         report: &mut StepReport,
-        fresh: &mut Vec<usize>,
     ) {
         let Some(mi) = self.models.iter().position(|m| m.name == det.object) else {
             return;
@@ -481,9 +479,14 @@ impl Tracker {
         });
         match associated {
             Some(i) => {
-                // a young track (or one never seen by this camera) gains this camera's component
+                // a camera that has no component in the track yet gains one at its first
+                // detection of it (Eq. 2: one component per camera), however old the track is:
+                // cameras are not synchronised, so in the service a second camera's first
+                // detection usually arrives a step after the first camera has already made
+                // the track `Tracking`; the robot camera, too, often first sees an object the
+                // external cameras have long been tracking
                 let has_camera = self.states[i].sources.contains(&ci);
-                if !has_camera && (self.tracks[i].status == TrackStatus::Initialising || fresh.contains(&i)) {
+                if !has_camera {
                     let parts = self.init_particles(mi, frame, det, view_from_ref, ci);
                     self.add_particles(i, parts, ci);
                 }
@@ -544,7 +547,6 @@ impl Tracker {
                     }
                 };
                 self.add_particles(i, parts, ci);
-                fresh.push(i);
             }
         }
     }
@@ -617,11 +619,20 @@ impl Tracker {
         let new_n = old_n + parts.len();
         let nb = tables.grid.len();
         let mut hist = vec![0f32; nb * new_n];
+        // the new particles start from the track's rotation belief (the particle-weighted
+        // mixture histogram; uniform for a new track): a camera joining a track adds
+        // translation hypotheses, it does not make the track forget what it knows of the
+        // rotation
+        let weights: Vec<f32> = s.weights.iter().map(|w| *w as f32).collect();
         hist.par_chunks_mut(new_n).enumerate().for_each(|(b, row)| {
-            if old_n > 0 {
-                row[..old_n].copy_from_slice(&s.hist[b * old_n..(b + 1) * old_n]);
-            }
-            row[old_n..].fill(tables.volume(b) as f32);
+            let start = if old_n > 0 {
+                let old = &s.hist[b * old_n..(b + 1) * old_n];
+                row[..old_n].copy_from_slice(old);
+                old.iter().zip(&weights).map(|(h, w)| h * w).sum::<f32>()
+            } else {
+                tables.volume(b) as f32
+            };
+            row[old_n..].fill(start);
         });
         s.hist = hist;
         let w_new = if old_n > 0 {
