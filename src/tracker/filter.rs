@@ -623,16 +623,13 @@ impl Tracker {
         // mixture histogram; uniform for a new track): a camera joining a track adds
         // translation hypotheses, it does not make the track forget what it knows of the
         // rotation
-        let weights: Vec<f32> = s.weights.iter().map(|w| *w as f32).collect();
+        let belief = (old_n > 0).then(|| s.set(&tables).mixture());
         hist.par_chunks_mut(new_n).enumerate().for_each(|(b, row)| {
-            let start = if old_n > 0 {
-                let old = &s.hist[b * old_n..(b + 1) * old_n];
-                row[..old_n].copy_from_slice(old);
-                old.iter().zip(&weights).map(|(h, w)| h * w).sum::<f32>()
-            } else {
-                tables.volume(b) as f32
-            };
-            row[old_n..].fill(start);
+            if old_n > 0 {
+                row[..old_n].copy_from_slice(&s.hist[b * old_n..(b + 1) * old_n]);
+            }
+            let start = belief.as_ref().map_or(tables.volume(b), |m| m[b]);
+            row[old_n..].fill(start as f32);
         });
         s.hist = hist;
         let w_new = if old_n > 0 {
