@@ -76,7 +76,36 @@ pub struct TrackerConfig {
     /// out of its detection's box) cannot duplicate a single object.
     #[serde(default)]
     pub max_tracks_per_object: usize,
+    /// The particle weights' update (Eq. 7: old weight times the marginal of the fused
+    /// histogram, times the depth term) is raised to the power `1 / views^t` with `t` this
+    /// value and `views` the number of views with evidence in the step; 0 is the paper's plain
+    /// product. The rotation histograms still multiply every view (Eq. 6): only the weights
+    /// that pick translation particles are tempered.
+    ///
+    /// Why: the observation model's sharpness was tuned for one view (PoseRBPF), and the
+    /// views' errors in the translation direction are not independent (a crop a centimetre off
+    /// the object matches worse in every view at once). Summing three views' log-marginals
+    /// spread the particles' log-weights by 13-19 nats (median over a step) and left an
+    /// effective sample size of 1-3 of 110 after every step: the mixture histogram was one
+    /// particle's, and the estimate flipped between its modes from step to step. With `t = 1`
+    /// the weights are as peaked as one view's (the single-view filter is unchanged). Measured
+    /// on 64 generated sequences (four sets of 16, the 8 YCB objects, 10-degree grid, every 5th
+    /// frame): orientation error 39.5 -> 30.5 degrees (L1; geodesic 29.6 -> 22.2), translation
+    /// 0.0233 -> 0.0222 m, log-likelihood of the truth -4.61 -> -3.79; a fixed exponent of 0.3
+    /// gave 33.6 degrees, 0.1 lost translation (0.033 m).
+    #[serde(default = "default_view_weight_tempering")]
+    pub view_weight_tempering: f64,
     pub seed: u64,
+}
+
+fn default_view_weight_tempering() -> f64 {
+    1.0
+}
+
+/// The exponent of a step's weight update with evidence from `views` views (see
+/// [`TrackerConfig::view_weight_tempering`]).
+pub fn weight_exponent(views: usize, tempering: f64) -> f64 {
+    (views.max(1) as f64).powf(-tempering.max(0.0))
 }
 
 impl Default for TrackerConfig {
@@ -99,6 +128,7 @@ impl Default for TrackerConfig {
             init_depth_sigma_m: 0.03,
             association_margin_rel: 0.3,
             max_tracks_per_object: 0,
+            view_weight_tempering: default_view_weight_tempering(),
             seed: 1,
         }
     }
@@ -755,9 +785,12 @@ impl Tracker {
                 &fmax,
             );
             // new log weights: old + log marginal (Eq. 7) + depth term
+            // Eq. 7 with the views' evidence tempered (see `TrackerConfig::view_weight_tempering`)
+            let alpha = weight_exponent(seen_by.len(), self.config.view_weight_tempering);
             let mut logw: Vec<f64> = (0..n)
                 .map(|p| {
-                    s.weights[p].max(1e-300).ln() + sums[p].max(1e-300).ln() + fmax[p] as f64 + depth_log[p] as f64
+                    s.weights[p].max(1e-300).ln()
+                        + alpha * (sums[p].max(1e-300).ln() + fmax[p] as f64 + depth_log[p] as f64)
                 })
                 .collect();
             let m = logw.iter().cloned().fold(f64::NEG_INFINITY, f64::max);

@@ -38,6 +38,11 @@
 //!   the object); an object no camera sees keeps its prior, which grows with the motion noise.
 //! - Resampling is stratified by source camera and component weights are floored, so the
 //!   mixture of Eq. 2 keeps one component per camera.
+//! - The particle weights' update (Eq. 7) is tempered by the number of views
+//!   (`TrackerConfig::view_weight_tempering`): the rotation histograms multiply every view,
+//!   but the weights that choose translation particles are as peaked as one view's. Plain
+//!   products of three views left 1-3 effective particles of 110 after every step, and the
+//!   estimate flipped between the modes of whichever particle won.
 
 pub mod bins;
 pub mod codebook;
