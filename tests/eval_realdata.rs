@@ -1,10 +1,10 @@
 //! Issue 3's real-data check: on the 10 real frames of `shared/realdata/ycbv_video_0000/bop/`
 //! the mug is tracked from its detection box to within 2 cm (translation) and 1 cm (ADD-S) by
-//! the last frame (met: 1.8 cm / ADD-S 0.8 cm with the support-plane suppression), and its
-//! rotation about its axis (handle hidden) is left ambiguous (not met yet: ignored test). The
-//! last two tests measure why, frame by frame: what the observation model gives the true pose
-//! with the real colours (the floor) and with the mesh's own colours painted over the mug (the
-//! top few bins).
+//! the last frame (met: 0.8 cm / ADD-S 0.7 cm), and its rotation about its axis (handle hidden)
+//! is left ambiguous: met with a depth-only codebook, not with the default colour one (ignored
+//! test), because the real mug's colours do not match its scan's. The last tests measure why,
+//! frame by frame: what the observation model gives the true pose with the real colours and
+//! with the mesh's own colours painted over the mug (the top few bins).
 
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use pregrasp::camera::{ColorImage, DepthImage};
@@ -25,6 +25,11 @@ fn shared() -> PathBuf {
 
 /// The evaluation of the real clip with the default tracker and a 10-degree grid.
 fn evaluate_real_clip() -> SequenceOutcome {
+    evaluate_real_clip_with(CodebookConfig::default())
+}
+
+/// The evaluation of the real clip with the default tracker, a 10-degree grid and `codebook`.
+fn evaluate_real_clip_with(codebook: CodebookConfig) -> SequenceOutcome {
     let seq = Sequence::open(&shared().join("realdata/ycbv_video_0000/bop")).expect("real sequence");
     let renderer = Renderer::new().expect("renderer");
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -33,7 +38,7 @@ fn evaluate_real_clip() -> SequenceOutcome {
         models_dir: None,
         cache_dir: Some(tmp.path().to_path_buf()),
         grid_step_deg: 10,
-        codebook: CodebookConfig::default(),
+        codebook,
         tracker: TrackerConfig::default(),
         detection_seed: 0,
         max_frames: None,
@@ -64,16 +69,49 @@ fn real_mug_is_tracked_from_its_detection_box() {
 }
 
 #[test]
-#[ignore = "not reached yet: the modes that share an axis spread over 18 deg of spin at the last frame, against the \
-            30 deg asked (encoder v3: the distribution is broad, entropy 6 nats, but over tilted axes). Cause (measured \
-            by the two tests below): the real mug's colours do not match the mesh's, so the true pose is near the floor \
-            in every frame and the track settles on poses tilted by about 30 or 90 deg; run with --ignored"]
+#[ignore = "not reached with colour: the modes that share an axis spread over 18 deg of spin at the last frame \
+            against the 30 deg asked (entropy 6.05 nats, top mode 0.27, the others flipped or tilted 74-82 deg; \
+            geodesic error 64 deg). The real mug's colours do not match its scan's (the tests below); with a depth-only \
+            codebook the clip passes (real_mug_with_depth_only_codes_keeps_its_spin_open); run with --ignored"]
 fn real_mug_spin_about_its_axis_stays_open() {
     let out = evaluate_real_clip();
     // Ambiguity about the axis (the mesh's z, the mug's height): the distribution must keep
-    // several spins about it rather than pick one angle with confidence. Modes with at least
-    // 5 % of the mass, their z axes agreeing (within 25 degrees), their spins differing by at
-    // least 30 degrees.
+    // several spins about it rather than pick one angle with confidence.
+    let (spread, _) = spin_spread(&out);
+    assert!(
+        spread >= 30.0,
+        "the spin about the axis should stay open: spread {spread:.1} deg"
+    );
+}
+
+/// With a depth-only codebook (`use_color: false`, the encoder and codes learned from the
+/// mesh's depth alone) the same clip meets both of issue 3's real-data points: the real mug's
+/// colours, 1.7 times redder than its scan, are what tilt the colour track (geodesic 64 deg at
+/// the last frame against 10 deg here). Measured: translation 0.9 cm, ADD-S 0.4 cm, spin
+/// spread 36.5 deg (modes 0.88 / 0.06 / 0.06, the two small ones 17-19 deg either side).
+#[test]
+fn real_mug_with_depth_only_codes_keeps_its_spin_open() {
+    let out = evaluate_real_clip_with(CodebookConfig {
+        use_color: false,
+        ..CodebookConfig::default()
+    });
+    let (spread, (geodesic_deg, translation_m, add_s_m)) = spin_spread(&out);
+    assert!(translation_m < 0.02, "translation error {translation_m:.4} m");
+    assert!(add_s_m < 0.01, "ADD-S {add_s_m:.4} m");
+    assert!(
+        geodesic_deg < 30.0,
+        "geodesic error {geodesic_deg:.1} deg at the last frame"
+    );
+    assert!(
+        spread >= 30.0,
+        "the spin about the axis should stay open: spread {spread:.1} deg"
+    );
+}
+
+/// The spread (degrees) of the spin about the mug's axis among the final distribution's modes
+/// with at least 5 % of the mass whose axes agree within 25 degrees (0 with one such mode), and
+/// the last frame's errors (geodesic degrees, translation m, ADD-S m); prints the modes.
+fn spin_spread(out: &SequenceOutcome) -> (f64, (f64, f64, f64)) {
     let (_, est) = out
         .final_estimates
         .iter()
@@ -95,12 +133,28 @@ fn real_mug_spin_about_its_axis_stays_open() {
         .filter(|(a, b)| axis(a).angle(&axis(b)).to_degrees() < 25.0)
         .map(|(a, b)| a.angle_to(b).to_degrees())
         .fold(0.0f64, f64::max);
-    assert!(
-        spread >= 30.0,
-        "rotation modes {:?} (entropy {:.2} nats): the spin about the axis should stay open, spread {spread:.1} deg",
-        est.rotation_modes,
+    let truth = out
+        .traces
+        .iter()
+        .find(|t| t.object == "025_mug")
+        .and_then(|t| t.frames.last())
+        .and_then(|f| f.errors.as_ref())
+        .map(|e| (e.geodesic_error_deg, e.translation_error_m, e.add_s_m));
+    eprintln!(
+        "modes (mass, axis angle to the top mode, angle to the top mode): {:?}; spread {spread:.1} deg; entropy {:.2}; last frame (geodesic deg, translation m, ADD-S m) {truth:?}",
+        modes
+            .iter()
+            .zip(est.rotation_modes.iter().filter(|m| m.mass >= 0.05))
+            .map(|(q, m)| format!(
+                "{:.2}, {:.0}, {:.0}",
+                m.mass,
+                axis(q).angle(&axis(&modes[0])).to_degrees(),
+                q.angle_to(&modes[0]).to_degrees()
+            ))
+            .collect::<Vec<_>>(),
         est.rotation_entropy
     );
+    (spread, truth.expect("errors at the last frame"))
 }
 
 /// The similarity the observation model gives the true pose in one real frame (the ground truth

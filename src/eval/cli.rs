@@ -54,6 +54,10 @@ pub struct Args {
     /// An earlier run's output folder whose traces the plots show dashed (e.g. single-view).
     #[arg(long)]
     pub compare: Option<PathBuf>,
+    /// Codebooks from the meshes' depth alone (no colour): for meshes whose colours do not
+    /// match the cameras' (a scan under other light, an untextured CAD model).
+    #[arg(long)]
+    pub depth_only: bool,
 }
 
 impl Args {
@@ -76,7 +80,10 @@ impl Args {
             models_dir: self.models.clone(),
             cache_dir: Some(self.cache.clone().unwrap_or_else(|| self.out.join("cache"))),
             grid_step_deg: self.grid_step_deg,
-            codebook: CodebookConfig::default(),
+            codebook: CodebookConfig {
+                use_color: !self.depth_only,
+                ..CodebookConfig::default()
+            },
             tracker: TrackerConfig::default(),
             detection_seed: self.seed,
             max_frames: self.max_frames,
