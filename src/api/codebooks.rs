@@ -22,12 +22,12 @@ pub struct Codebooks {
 }
 
 impl Codebooks {
-    /// The ready codebook of an object whose mesh has `content_hash`.
-    pub fn get(&self, object_id: &str, content_hash: &str) -> Option<Arc<Codebook>> {
+    /// The ready codebook of an object whose mesh has `content_hash`, with or without colour.
+    pub fn get(&self, object_id: &str, content_hash: &str, use_color: bool) -> Option<Arc<Codebook>> {
         let ready = self.ready.lock().unwrap_or_else(|p| p.into_inner());
         ready
             .get(object_id)
-            .filter(|(h, _)| h == content_hash)
+            .filter(|(h, c)| h == content_hash && c.config.use_color == use_color)
             .map(|(_, c)| c.clone())
     }
     fn put(&self, object_id: &str, content_hash: &str, cb: Arc<Codebook>) {
@@ -59,10 +59,14 @@ impl Default for CodebookPlan {
 }
 
 fn build(state: &AppState, object_id: &str, step_deg: u32, config: &CodebookConfig) -> Result<(), String> {
-    let (mesh, hash) = {
+    let (mesh, hash, use_color) = {
         let reg = state.registry();
         let o = reg.objects.get(object_id).ok_or("object was deleted")?;
-        (o.mesh.clone(), o.info.content_hash.clone())
+        (o.mesh.clone(), o.info.content_hash.clone(), o.info.use_color)
+    };
+    let config = &CodebookConfig {
+        use_color: config.use_color && use_color,
+        ..config.clone()
     };
     let grid = RotationGrid::new(step_deg).map_err(|e| e.to_string())?;
     let cache = state.config.data_dir.join("codebooks");
@@ -231,6 +235,7 @@ mod tests {
                 n_triangles: 12,
                 diameter_m: 0.1,
                 content_hash: "h".into(),
+                use_color: true,
                 codebook: CodebookStatus {
                     status,
                     progress: stages_done as f64 / 2.0,

@@ -215,7 +215,7 @@ pub fn register(state: &AppState, scene: &DemoScene) -> anyhow::Result<()> {
             .get(name)
             .is_some_and(|o| o.info.content_hash == mesh.content_hash());
         if !same {
-            super::objects::register_mesh(state, name, name, mesh.clone())?;
+            super::objects::register_mesh(state, name, name, mesh.clone(), true)?;
         }
     }
     *state.support_plane.lock().unwrap_or_else(|p| p.into_inner()) = Some(PlaneDto {

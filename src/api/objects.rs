@@ -64,7 +64,16 @@ pub struct ObjectInfo {
     pub diameter_m: f64,
     /// SHA-256 of the geometry (the key of the codebook cache).
     pub content_hash: String,
+    /// Whether the codebook uses the mesh's colours (false: depth alone, for a mesh whose
+    /// colours do not match the cameras', such as an untextured CAD model or a scan under
+    /// other light).
+    #[serde(default = "default_use_color")]
+    pub use_color: bool,
     pub codebook: CodebookStatus,
+}
+
+fn default_use_color() -> bool {
+    true
 }
 
 /// An object in memory: its record and mesh.
@@ -108,8 +117,15 @@ pub fn router() -> OpenApiRouter<AppState> {
         .routes(routes!(get_object_mesh))
 }
 
-/// Registers (or replaces) an object: store first, then memory.
-pub fn register_mesh(state: &AppState, id: &str, name: &str, mesh: Mesh) -> Result<ObjectInfo, ApiError> {
+/// Registers (or replaces) an object: store first, then memory. `use_color`: see
+/// [`ObjectInfo::use_color`].
+pub fn register_mesh(
+    state: &AppState,
+    id: &str,
+    name: &str,
+    mesh: Mesh,
+    use_color: bool,
+) -> Result<ObjectInfo, ApiError> {
     check_id("object", id)?;
     mesh.validate().map_err(|e| ApiError::Invalid(format!("mesh: {e}")))?;
     let info = ObjectInfo {
@@ -119,6 +135,7 @@ pub fn register_mesh(state: &AppState, id: &str, name: &str, mesh: Mesh) -> Resu
         n_triangles: mesh.triangles.len(),
         diameter_m: mesh.diameter_m(),
         content_hash: mesh.content_hash(),
+        use_color,
         codebook: CodebookStatus::pending(),
     };
     let mut reg = state.registry_mut();
@@ -167,6 +184,9 @@ pub struct UploadQuery {
     pub name: Option<String>,
     /// `ply`, `obj` or `stl` (default: from the Content-Type, else sniffed from the bytes).
     pub format: Option<String>,
+    /// `false`: build the codebook from the mesh's depth alone, for a mesh whose colours do
+    /// not match the cameras' (default `true`: depth and colour).
+    pub use_color: Option<bool>,
 }
 
 fn format_of(q: &UploadQuery, headers: &HeaderMap, bytes: &[u8]) -> Result<MeshFormat, ApiError> {
@@ -213,10 +233,11 @@ fn format_of(q: &UploadQuery, headers: &HeaderMap, bytes: &[u8]) -> Result<MeshF
 async fn put_object(
     State(state): State<AppState>,
     Path(id): Path<String>,
-    Query(q): Query<UploadQuery>,
+    q: Result<Query<UploadQuery>, axum::extract::rejection::QueryRejection>,
     headers: HeaderMap,
     body: Result<Bytes, axum::extract::rejection::BytesRejection>,
 ) -> Result<Json<ObjectInfo>, ApiError> {
+    let Query(q) = q?;
     let bytes = body?;
     check_id("object", &id)?;
     if bytes.len() > MAX_MESH_BYTES {
@@ -230,7 +251,7 @@ async fn put_object(
         .map_err(ApiError::internal)?
         .map_err(|e| ApiError::Invalid(format!("mesh: {e}")))?;
     let name = q.name.unwrap_or_else(|| id.clone());
-    let info = register_mesh(&state, &id, &name, mesh)?;
+    let info = register_mesh(&state, &id, &name, mesh, q.use_color.unwrap_or(true))?;
     Ok(Json(info))
 }
 

@@ -88,8 +88,8 @@ pub struct Engine {
     pub tracker: Tracker,
     /// Camera set the tracker was built for.
     cameras: BTreeMap<String, MountDto>,
-    /// Object id -> content hash and codebook grid step of the model in the tracker.
-    models: BTreeMap<String, (String, u32)>,
+    /// Per object the codebook in the tracker: (mesh hash, grid step, with colour).
+    models: BTreeMap<String, (String, u32, bool)>,
     /// Stamp of the odometry given to the last step (odometry never goes back in time: a late
     /// frame of a stationary camera is fused at the robot's latest pose).
     odometry_stamp_ns: Option<i64>,
@@ -153,17 +153,24 @@ impl Engine {
 
     /// Adds the objects whose codebooks became ready (or changed).
     pub(super) fn sync_models(&mut self, state: &AppState) {
-        let objects: Vec<(String, String, std::sync::Arc<crate::mesh::Mesh>)> = state
+        let objects: Vec<(String, String, bool, std::sync::Arc<crate::mesh::Mesh>)> = state
             .registry()
             .objects
             .values()
-            .map(|o| (o.info.id.clone(), o.info.content_hash.clone(), o.mesh.clone()))
+            .map(|o| {
+                (
+                    o.info.id.clone(),
+                    o.info.content_hash.clone(),
+                    o.info.use_color,
+                    o.mesh.clone(),
+                )
+            })
             .collect();
-        for (id, hash, mesh) in objects {
-            let Some(cb) = state.codebooks.get(&id, &hash) else {
+        for (id, hash, use_color, mesh) in objects {
+            let Some(cb) = state.codebooks.get(&id, &hash, use_color) else {
                 continue;
             };
-            let key = (hash.clone(), cb.grid.step_deg());
+            let key = (hash.clone(), cb.grid.step_deg(), use_color);
             if self.models.get(&id) == Some(&key) {
                 continue;
             }

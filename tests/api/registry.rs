@@ -89,3 +89,45 @@ async fn state_changes_need_the_token_reads_do_not() {
     assert_eq!(health["status"], "ok");
     assert_eq!(health["cameras"], 1);
 }
+
+#[tokio::test]
+async fn an_object_registered_without_colour_gets_a_depth_only_codebook() {
+    // A mesh whose colours do not match the cameras' (an untextured CAD model, a scan under
+    // other light) is registered with `use_color=false`: its codebook comes from depth alone,
+    // and the choice survives a restart.
+    let app = spawn_app().await;
+    let ply = pregrasp::mesh::builtin("box").expect("box").to_ply_bytes();
+    let r = app
+        .put_bytes("/objects/cad?use_color=false", "application/octet-stream", ply.clone())
+        .await;
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.json::<serde_json::Value>().await.expect("json")["use_color"], false);
+    let r = app.put_bytes("/objects/scan", "application/octet-stream", ply).await;
+    assert_eq!(r.json::<serde_json::Value>().await.expect("json")["use_color"], true);
+    crate::assert_problem(
+        app.put_bytes(
+            "/objects/bad?use_color=maybe",
+            "application/octet-stream",
+            vec![1, 2, 3],
+        )
+        .await,
+        400,
+    )
+    .await;
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    loop {
+        let cad = app.get_json("/objects/cad").await;
+        let scan = app.get_json("/objects/scan").await;
+        if cad["codebook"]["status"] == "ready" && scan["codebook"]["status"] == "ready" {
+            break;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "codebooks not ready: {cad} {scan}"
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+    }
+    let app = app.restart().await;
+    assert_eq!(app.get_json("/objects/cad").await["use_color"], false);
+    assert_eq!(app.get_json("/objects/scan").await["use_color"], true);
+}
