@@ -784,8 +784,8 @@ impl Tracker {
                 self.config.prior_floor_rel as f32,
                 &fmax,
             );
-            // new log weights: old + log marginal (Eq. 7) + depth term
-            // Eq. 7 with the views' evidence tempered (see `TrackerConfig::view_weight_tempering`)
+            // new log weights: old + (log marginal (Eq. 7) + depth term) tempered by the number
+            // of views (see `TrackerConfig::view_weight_tempering`)
             let alpha = weight_exponent(seen_by.len(), self.config.view_weight_tempering);
             let mut logw: Vec<f64> = (0..n)
                 .map(|p| {
