@@ -4,9 +4,17 @@
 //! For every `--stride`-th frame and every camera that sees the target, it crops at the true
 //! position (and a 3 x 3 x 3 grid of 1 cm offsets around it, as the particles would), matches
 //! against the codebook and reports the geodesic and symmetry-aware error of the view's own best
-//! bin, the rank of the true bin, and the view's evidence strength.
+//! bin, the rank of the true bin, and the view's evidence strength. Then it pulls every view's
+//! log-likelihood into the robot camera's frame with the tracker's own bin maps, sums them as
+//! the filter does (Eq. 6), and reports the evidence for the truth: the log of the posterior
+//! mass of the true bin's 3 x 3 x 3 neighbourhood over that of a uniform prior (nats).
 //!
-//! cargo run --release --example view_diag -- DATA_DIR [--grid 10] [--stride 5] [--cache DIR] [--models DIR]
+//! - `--offset-cm X`: crops X cm off the truth (along the world's (1, 1, 1)), as a particle a
+//!   little off would see the object.
+//! - `--dump FILE`: per view one JSON line (`FILE.jsonl`) and the similarities at the true
+//!   position to every bin (`FILE.f32`), for calibrating the likelihood offline.
+//!
+//! cargo run --release --example view_diag -- DATA_DIR [--grid 10] [--stride 5] [--cache DIR] [--models DIR] [--offset-cm X] [--dump FILE]
 
 use nalgebra::Vector3;
 use pregrasp::dataset::{Sequence, find_sequences};
@@ -31,11 +39,10 @@ fn main() -> anyhow::Result<()> {
     };
     let grid_deg: u32 = opt("--grid").map_or(Ok(10), |s| s.parse())?;
     let offset_cm: f64 = opt("--offset-cm").map_or(Ok(0.0), |s| s.parse())?;
+    let off_world = Vector3::new(1.0, 1.0, 1.0).normalize() * offset_cm * 0.01;
     let stride: usize = opt("--stride").map_or(Ok(5), |s| s.parse())?;
     let cache = opt("--cache").map(PathBuf::from);
     let models = opt("--models").map(PathBuf::from);
-    // --dump FILE: per view one line of JSON (FILE.jsonl) and the similarities of the true
-    // position to every bin (FILE.f32, little-endian), for calibrating the likelihood offline
     let mut dump = match opt("--dump") {
         Some(p) => Some((
             std::io::BufWriter::new(std::fs::File::create(format!("{p}.jsonl"))?),
@@ -49,6 +56,8 @@ fn main() -> anyhow::Result<()> {
     let mut books: BTreeMap<String, (Codebook, Symmetries)> = BTreeMap::new();
     // per (object, camera): [sum geodesic, sum symmetric, count, sum strength, sum rank]
     let mut totals: BTreeMap<(String, String), [f64; 5]> = BTreeMap::new();
+    // per object: (sum of the fused evidence for the truth, frames)
+    let mut fused_totals: BTreeMap<String, (f64, f64)> = BTreeMap::new();
     let obs = {
         let mut o = TrackerConfig::default().observation;
         o.gate_similarity = 0.0;
@@ -98,9 +107,6 @@ fn main() -> anyhow::Result<()> {
                     depth: &depth,
                     color: color.as_ref(),
                 };
-                // --offset-cm: the crop's centre moved off the truth by this much along the world's
-                // (1, 1, 1) direction, as a particle a little off would be
-                let off_world = Vector3::new(1.0, 1.0, 1.0).normalize() * offset_cm * 0.01;
                 let off_cam = meta.camera_from_world.map_or(off_world, |c| c.rotation * off_world);
                 let t = gt.camera_from_object.translation.vector + off_cam;
                 let mut positions = vec![t];
@@ -186,7 +192,6 @@ fn main() -> anyhow::Result<()> {
             if let (Some(rcfw), Some(rt)) = (robot_cfw, robot_truth)
                 && !lls.is_empty()
             {
-                let off_world = Vector3::new(1.0, 1.0, 1.0).normalize() * offset_cm * 0.01;
                 let t_ref = rt.reference_from_object.translation.vector + rcfw.rotation * off_world;
                 let true_ref = grid.flat_of(&(ray_rotation(&t_ref).inverse() * rt.reference_from_object.rotation));
                 let mut fused = vec![0f32; grid.len()];
@@ -202,9 +207,9 @@ fn main() -> anyhow::Result<()> {
                 }
                 let g = gain(&grid, &tables, &fused, true_ref);
                 line += &format!("  FUSED gain {g:.1}");
-                let e = totals.entry((target.clone(), "FUSED".into())).or_default();
-                e[0] += g;
-                e[2] += 1.0;
+                let e = fused_totals.entry(target.clone()).or_default();
+                e.0 += g;
+                e.1 += 1.0;
             }
             println!("{line}");
         }
@@ -219,6 +224,10 @@ fn main() -> anyhow::Result<()> {
             v[3] / v[2],
             v[4] / v[2]
         );
+    }
+    println!("\nper object: mean fused evidence for the truth (nats over a uniform prior)");
+    for (o, (sum, n)) in &fused_totals {
+        println!("{o:24} n {n:3} {:5.1}", sum / n);
     }
     Ok(())
 }

@@ -93,6 +93,10 @@ fn run_mug(views: &[(&str, pregrasp::geometry::Pose)], steps: u64) -> (f64, f64,
     let e = tracker.estimate(id).unwrap();
     let (yaw, axis) = mug_errors(&e.reference_from_object.rotation, &truth.rotation);
     let ll = tracker.orientation_loglik(id, &truth.rotation).unwrap();
+    let rot = |m: &pregrasp::tracker::RotationMode| {
+        let q = m.rotation_xyzw;
+        UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[3], q[0], q[1], q[2]))
+    };
     eprintln!(
         "{} views: yaw err {yaw:.1} axis err {axis:.1} loglik {ll:.2} entropy {:.2} t_err {:.3} modes {:?}",
         views.len(),
@@ -101,19 +105,13 @@ fn run_mug(views: &[(&str, pregrasp::geometry::Pose)], steps: u64) -> (f64, f64,
         e.rotation_modes
             .iter()
             .map(|m| {
-                let q = m.rotation_xyzw;
-                let r = UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[3], q[0], q[1], q[2]));
-                let (yaw, axis) = mug_errors(&r, &truth.rotation);
+                let (yaw, axis) = mug_errors(&rot(m), &truth.rotation);
                 format!("{:.3} (yaw {yaw:.0}, axis {axis:.0})", m.mass)
             })
             .collect::<Vec<_>>()
     );
     // mass of the modes within 15 degrees of the top one (mode clustering may split one
     // hypothesis that straddles a bin boundary into two modes)
-    let rot = |m: &pregrasp::tracker::RotationMode| {
-        let q = m.rotation_xyzw;
-        UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[3], q[0], q[1], q[2]))
-    };
     let top = rot(&e.rotation_modes[0]);
     let near_top: f64 = e
         .rotation_modes
@@ -562,8 +560,8 @@ fn survivors(tracker: &Tracker, id: u64) -> usize {
     seen.len()
 }
 
-/// Survivors per step (steps 1..5) of a box track fed by camera `a` alone, or by `a` and
-/// `copies - 1` more cameras at the same pose with the same images (the same evidence counted
+/// Survivors per step (steps 1..5) of a box track fed by one camera, or by it and `copies - 1`
+/// more cameras at the same pose with the same images (the same evidence counted
 /// `copies` times). The particles start widely spread so that their weights differ.
 fn survivors_with_duplicated_view(tempering: f64, copies: usize) -> Vec<usize> {
     let mesh = pregrasp::mesh::builtin("box").unwrap();
