@@ -41,6 +41,7 @@ fn args(out: &Path) -> Args {
         frame_period_ms: 100.0,
         look_away_probability: 0.5,
         occluder_probability: 0.0,
+        headlight: false,
     }
 }
 

@@ -589,3 +589,47 @@ fn bad_inputs_are_errors() {
     let empty = r.render_scene(&k, &Pose::identity(), &[], clip()).unwrap();
     assert!(empty.depth.data_m.iter().all(|d| *d == 0.0));
 }
+
+/// Lambert shading: a square facing the camera is lit fully by a headlight, by
+/// `0.2 + 0.8 cos(angle)` of a directional light at `angle` to its normal, by the 20 % ambient
+/// alone when the light is behind it; the light is given in the world frame and turned into
+/// each camera's.
+#[test]
+fn directional_light_shades_by_the_angle_to_the_normal() {
+    let r = renderer();
+    let k = Intrinsics::from_focal(64, 48, 60.0).unwrap();
+    let mesh = r.upload_mesh(&square(0.8, [200, 200, 200])).unwrap();
+    // the camera looks along the world's -x: camera_from_world turns world directions
+    let world_from_camera = Isometry3::from_parts(
+        Translation3::new(1.0, 0.0, 0.0),
+        UnitQuaternion::face_towards(&Vector3::new(-1.0, 0.0, 0.0), &Vector3::new(0.0, 0.0, -1.0)),
+    );
+    let camera_from_world = world_from_camera.inverse();
+    // the square's normal (its z) points at the camera (world +x)
+    let world_from_square = Isometry3::from_parts(
+        Translation3::identity(),
+        UnitQuaternion::face_towards(&Vector3::new(1.0, 0.0, 0.0), &Vector3::new(0.0, 0.0, 1.0)),
+    );
+    let scene = [SceneObject {
+        mesh: mesh.clone(),
+        world_from_object: world_from_square,
+        instance_id: 1,
+    }];
+    let centre = |light: Option<Vector3<f64>>| -> f64 {
+        let out = r
+            .render_scene_lit(&k, &camera_from_world, &scene, clip(), [0, 0, 0], light)
+            .unwrap();
+        assert_eq!(out.instance[24 * 64 + 32], 1, "the square covers the centre");
+        out.color.data[24 * 64 + 32][0] as f64
+    };
+    let head = centre(None);
+    assert!((head - 200.0).abs() <= 2.0, "headlight {head}");
+    for deg in [0.0f64, 60.0] {
+        let l = Vector3::new(deg.to_radians().cos(), 0.0, deg.to_radians().sin());
+        let got = centre(Some(l));
+        let want = 200.0 * (0.2 + 0.8 * deg.to_radians().cos());
+        assert!((got - want).abs() <= 3.0, "light at {deg} deg: {got} against {want}");
+    }
+    let behind = centre(Some(Vector3::new(-1.0, 0.0, 0.2)));
+    assert!((behind - 40.0).abs() <= 2.0, "light behind: {behind}");
+}

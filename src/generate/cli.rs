@@ -48,6 +48,10 @@ pub struct Args {
     /// stretch of the approach.
     #[arg(long, default_value_t = 0.0)]
     pub occluder_probability: f64,
+    /// Light every camera's view from the camera itself (how the codebook's templates are
+    /// lit) instead of from a light above the table drawn per sequence.
+    #[arg(long)]
+    pub headlight: bool,
 }
 
 impl Args {
@@ -64,6 +68,7 @@ impl Args {
         c.frame_period_ms = self.frame_period_ms;
         c.look_away_probability = self.look_away_probability;
         c.occluder_probability = self.occluder_probability;
+        c.headlight = self.headlight;
         for t in &self.targets {
             if !c.models.iter().any(|m| &m.name == t) {
                 return Err(super::GenerateError::UnknownObject {

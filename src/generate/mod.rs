@@ -28,7 +28,7 @@ use crate::geometry::Pose;
 use crate::mesh::{self, Mesh, MeshError};
 use crate::render::{ClipRange, MeshHandle, RenderError, Renderer, SceneObject};
 use crate::tracker::{CameraFrame, CameraMount, RobotOdometry};
-use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -231,6 +231,12 @@ pub struct GenerateConfig {
     /// Write colour images and visible masks as well as depth.
     pub write_rgb: bool,
     pub write_masks: bool,
+    /// Light the scene from each camera (a headlight: how codebook templates are rendered)
+    /// instead of a directional light from above, at an azimuth and an elevation (30-80
+    /// degrees) drawn per sequence. With a headlight the shading seen by every camera is the
+    /// templates' own, a cue no real camera gives (the real mug's shading matches none of its
+    /// templates): an evaluation on headlit scenes rewards an encoder for relying on it.
+    pub headlight: bool,
 }
 
 impl GenerateConfig {
@@ -255,6 +261,7 @@ impl GenerateConfig {
             occluder_probability: 0.0,
             write_rgb: true,
             write_masks: true,
+            headlight: false,
         }
     }
 
@@ -446,6 +453,8 @@ struct Prepared<'a> {
     world_from_base_true: BTreeMap<u32, Pose>,
     look_away_frames: Vec<u32>,
     occluder: Option<(Pose, [f64; 3])>,
+    /// Direction towards the scene's light (world frame); `None`: a headlight per camera.
+    towards_light_in_world: Option<Vector3<f64>>,
 }
 
 fn table_mesh() -> Mesh {
@@ -659,6 +668,18 @@ fn prepare<'a>(renderer: &Renderer, config: &'a GenerateConfig, seed: u64) -> Re
         }
     }
 
+    // the light: its own stream, so that the scene is the same with a headlight
+    let mut rng = ChaCha8Rng::seed_from_u64(stream_seed(seed, &[b"light"]));
+    let towards_light_in_world = (!config.headlight).then(|| {
+        let elevation = rng.random_range(30f64..80.0).to_radians();
+        let azimuth = rng.random_range(0.0..std::f64::consts::TAU);
+        Vector3::new(
+            elevation.cos() * azimuth.cos(),
+            elevation.cos() * azimuth.sin(),
+            elevation.sin(),
+        )
+    });
+
     let odometry = robot.odometry.iter().enumerate().map(|(k, o)| (k as u32, *o)).collect();
     let world_from_base_true = robot
         .world_from_base
@@ -678,6 +699,7 @@ fn prepare<'a>(renderer: &Renderer, config: &'a GenerateConfig, seed: u64) -> Re
         world_from_base_true,
         look_away_frames: robot.look_away_frames,
         occluder,
+        towards_light_in_world,
     })
 }
 
@@ -697,7 +719,14 @@ struct CleanFrame {
 impl Prepared<'_> {
     fn clean(&self, renderer: &Renderer, intrinsics: &Intrinsics, world_from_camera: &Pose) -> Result<CleanFrame> {
         let camera_from_world = world_from_camera.inverse();
-        let r = renderer.render_scene(intrinsics, &camera_from_world, &self.scene, CLIP)?;
+        let r = renderer.render_scene_lit(
+            intrinsics,
+            &camera_from_world,
+            &self.scene,
+            CLIP,
+            [0, 0, 0],
+            self.towards_light_in_world,
+        )?;
         let mut masks = Vec::with_capacity(self.models.len());
         let mut gt = Vec::with_capacity(self.models.len());
         let mut gt_info = Vec::with_capacity(self.models.len());

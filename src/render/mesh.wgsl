@@ -23,6 +23,9 @@ struct Draw {
     size_clip: vec4<f32>,
     // x: instance id for the mask; y, z, w unused.
     ids: vec4<u32>,
+    // xyz: unit direction towards a directional light in the camera frame, w: 1 for that light,
+    // 0 for a headlight (light at the camera centre).
+    light: vec4<f32>,
 };
 
 @group(0) @binding(0) var<uniform> draw: Draw;
@@ -37,6 +40,7 @@ struct VertexOut {
     @location(0) point_in_camera_m: vec3<f32>,
     @location(1) color: vec3<f32>,
     @location(2) @interpolate(flat) instance_id: u32,
+    @location(3) @interpolate(flat) light: vec4<f32>,
 };
 
 @vertex
@@ -61,17 +65,28 @@ fn vs_main(v: VertexIn) -> VertexOut {
     out.point_in_camera_m = p;
     out.color = v.color.rgb;
     out.instance_id = d.ids.x;
+    out.light = d.light;
     return out;
 }
 
-// Lambert shading with a headlight (light at the camera centre), two-sided, flat normals from
-// screen-space derivatives of the camera-frame point.
-fn shade(p: vec3<f32>, color: vec3<f32>) -> vec3<f32> {
+// Lambert shading, two-sided (the normal faces the camera), flat normals from screen-space
+// derivatives of the camera-frame point: 20 % ambient plus 80 % Lambert, with a headlight
+// (light at the camera centre: what codebook templates use) or a directional light.
+fn shade(p: vec3<f32>, color: vec3<f32>, light: vec4<f32>) -> vec3<f32> {
     let n_raw = cross(dpdx(p), dpdy(p));
     let len = length(n_raw);
+    let to_camera = -normalize(p);
     var lambert = 1.0;
     if (len > 0.0) {
-        lambert = abs(dot(n_raw / len, normalize(p)));
+        var n = n_raw / len;
+        if (dot(n, to_camera) < 0.0) {
+            n = -n;
+        }
+        var l = to_camera;
+        if (light.w > 0.5) {
+            l = light.xyz;
+        }
+        lambert = max(dot(n, l), 0.0);
     }
     return color * (0.2 + 0.8 * lambert);
 }
@@ -84,12 +99,12 @@ struct SceneOut {
 @fragment
 fn fs_scene(f: VertexOut) -> SceneOut {
     var out: SceneOut;
-    out.color = vec4<f32>(shade(f.point_in_camera_m, f.color), 1.0);
+    out.color = vec4<f32>(shade(f.point_in_camera_m, f.color, f.light), 1.0);
     out.instance_id = f.instance_id;
     return out;
 }
 
 @fragment
 fn fs_view(f: VertexOut) -> @location(0) vec4<f32> {
-    return vec4<f32>(shade(f.point_in_camera_m, f.color), 1.0);
+    return vec4<f32>(shade(f.point_in_camera_m, f.color, f.light), 1.0);
 }

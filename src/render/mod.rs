@@ -48,6 +48,7 @@
 use crate::camera::{ColorImage, DepthImage, Intrinsics};
 use crate::geometry::Pose;
 use crate::mesh::Mesh;
+use nalgebra::Vector3;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -68,7 +69,7 @@ const ZBUFFER_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 /// Bytes of one vertex: position f32x3, colour unorm8x4.
 const VERTEX_STRIDE: u64 = 16;
 /// Bytes of one draw record in the uniform buffer (see `Draw` in mesh.wgsl).
-const DRAW_RECORD_BYTES: usize = 112;
+const DRAW_RECORD_BYTES: usize = 128;
 /// Meshes with at most this fraction of flawed edges (holes, non-manifold) count as closed and
 /// consistently oriented for culling.
 pub const MAX_FLAWED_EDGE_FRACTION: f64 = 0.01;
@@ -253,6 +254,8 @@ struct DrawCall<'a> {
     instance_id: u16,
     /// x, y, width, height in pixels of the render target.
     viewport: [u32; 4],
+    /// Unit direction towards a directional light in the camera frame; `None`: a headlight.
+    light_in_camera: Option<Vector3<f64>>,
 }
 
 /// Whole render targets read back into memory (row padding removed).
@@ -463,6 +466,22 @@ impl Renderer {
         clip: ClipRange,
         background_rgb: [u8; 3],
     ) -> Result<SceneRender, RenderError> {
+        self.render_scene_lit(intrinsics, camera_from_world, objects, clip, background_rgb, None)
+    }
+
+    /// [`Self::render_scene_with_background`] lit by a directional light shining from
+    /// `towards_light_in_world` (a direction, world frame; `None`: a headlight at the camera,
+    /// as codebook templates are rendered). A scene lit from elsewhere than the camera is what
+    /// real cameras see: its shading is not the templates'.
+    pub fn render_scene_lit(
+        &self,
+        intrinsics: &Intrinsics,
+        camera_from_world: &Pose,
+        objects: &[SceneObject],
+        clip: ClipRange,
+        background_rgb: [u8; 3],
+        towards_light_in_world: Option<Vector3<f64>>,
+    ) -> Result<SceneRender, RenderError> {
         clip.validate()?;
         let (w, h) = (intrinsics.width, intrinsics.height);
         self.check_size(w, h)?;
@@ -476,6 +495,7 @@ impl Renderer {
                 clip,
                 instance_id: o.instance_id,
                 viewport: [0, 0, w, h],
+                light_in_camera: towards_light_in_world.map(|l| camera_from_world.rotation * l),
             });
         }
         let rb = self.render_batch(Outputs::Scene, w, h, background_rgb, &draws)?;
@@ -641,6 +661,7 @@ impl Renderer {
                         clip,
                         instance_id: 0,
                         viewport: [(i % cols) * w, (i / cols) * h, w, h],
+                        light_in_camera: None,
                     }
                 })
                 .collect();
@@ -1007,7 +1028,7 @@ fn color_attachment(view: &wgpu::TextureView, clear: wgpu::Color) -> wgpu::Rende
     }
 }
 
-/// Appends the `Draw` record of mesh.wgsl (112 bytes, little-endian).
+/// Appends the `Draw` record of mesh.wgsl (128 bytes, little-endian).
 fn write_draw_record(out: &mut Vec<u8>, d: &DrawCall) -> Result<(), RenderError> {
     let m = d.camera_from_object.to_homogeneous();
     if m.iter().any(|v| !v.is_finite()) {
@@ -1031,6 +1052,17 @@ fn write_draw_record(out: &mut Vec<u8>, d: &DrawCall) -> Result<(), RenderError>
         out.extend_from_slice(&v.to_le_bytes());
     }
     for v in [d.instance_id as u32, 0, 0, 0] {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    let light = match d.light_in_camera {
+        Some(l) if l.iter().all(|v| v.is_finite()) && l.norm() > 0.0 => {
+            let l = l.normalize();
+            [l.x as f32, l.y as f32, l.z as f32, 1.0]
+        }
+        Some(_) => return Err(RenderError::NonFinitePose),
+        None => [0.0; 4],
+    };
+    for v in light {
         out.extend_from_slice(&v.to_le_bytes());
     }
     Ok(())
