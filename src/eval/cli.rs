@@ -3,7 +3,7 @@
 use super::report::Mode;
 use super::run::{DecideConfig, EvalConfig, run_all};
 use crate::grasp::Gripper;
-use crate::tracker::{CodebookConfig, TrackerConfig};
+use crate::tracker::{CodebookConfig, ColorFeatures, TrackerConfig};
 use std::path::PathBuf;
 
 /// Options of `pregrasp eval`.
@@ -58,6 +58,10 @@ pub struct Args {
     /// match the cameras' (a scan under other light, an untextured CAD model).
     #[arg(long)]
     pub depth_only: bool,
+    /// Colour codes from the renders' RGB (shading included) instead of their chromaticity:
+    /// only right when the scenes are lit like the templates (`pregrasp generate --headlight`).
+    #[arg(long)]
+    pub rgb: bool,
 }
 
 impl Args {
@@ -82,6 +86,11 @@ impl Args {
             grid_step_deg: self.grid_step_deg,
             codebook: CodebookConfig {
                 use_color: !self.depth_only,
+                color_features: if self.rgb {
+                    ColorFeatures::Rgb
+                } else {
+                    ColorFeatures::Chromaticity
+                },
                 ..CodebookConfig::default()
             },
             tracker: TrackerConfig::default(),

@@ -16,6 +16,7 @@ use crate::mesh::Mesh;
 use crate::tracker::TrackerError;
 use crate::tracker::encoder::{
     CropParams, ENCODER_VERSION, Encoder, FeatureLayout, LinearDenoisingEncoder, normalise_rows, sample_crop,
+    to_chromaticity,
 };
 use nalgebra::{Translation3, UnitQuaternion};
 use rand::{Rng, SeedableRng};
@@ -59,6 +60,23 @@ pub struct CodebookConfig {
     /// power `-whiten / 2` (0: plain PCA, 1: full whitening; see the encoder's module docs).
     #[serde(default)]
     pub whiten: f64,
+    /// What the colour cells hold (with `use_color`): chromaticity by default, so that the
+    /// scene's lighting does not move the codes
+    /// ([`crate::tracker::encoder::to_chromaticity`]).
+    #[serde(default)]
+    pub color_features: ColorFeatures,
+}
+
+/// The colour features of a codebook.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ColorFeatures {
+    /// Each cell's chromaticity: hue and saturation, not brightness (robust to lighting).
+    #[default]
+    Chromaticity,
+    /// Each cell's RGB as rendered (shading included: only right under the templates' own
+    /// headlight).
+    Rgb,
 }
 
 impl Default for CodebookConfig {
@@ -78,6 +96,7 @@ impl Default for CodebookConfig {
             support_plane_prob: 0.5,
             suppress_plane: true,
             whiten: 0.5,
+            color_features: ColorFeatures::default(),
         }
     }
 }
@@ -98,6 +117,7 @@ impl CodebookConfig {
             feature_px: self.feature_px,
             use_color: self.use_color,
             color_weight: self.color_weight,
+            chromaticity: self.color_features == ColorFeatures::Chromaticity,
         }
     }
 }
@@ -273,6 +293,7 @@ impl Codebook {
             };
             let (dimg, cimg) = &views[v];
             sample_crop(&layout, dimg, cimg.as_ref(), &p, out, mask);
+            to_chromaticity(&layout, out, mask);
         };
 
         // training set: clean templates at bins, corrupted crops of the same bins
@@ -510,6 +531,7 @@ fn corrupt(
         crate::tracker::encoder::suppress_support_plane(layout, &mut x, &mask, has_color);
     }
     crate::tracker::encoder::inpaint_depth(layout, &mut x, &mut mask, has_color);
+    to_chromaticity(layout, &mut x, &mask);
     (x, mask)
 }
 

@@ -57,7 +57,7 @@ use crate::camera::{ColorImage, DepthImage, Intrinsics};
 use crate::geometry::Pose;
 use serde::{Deserialize, Serialize};
 
-pub use codebook::{Codebook, CodebookConfig};
+pub use codebook::{Codebook, CodebookConfig, ColorFeatures};
 pub use encoder::{Encoder, LinearDenoisingEncoder};
 pub use filter::{TrackPrior, TrackSnapshot, Tracker, TrackerConfig, TrackerSnapshot};
 

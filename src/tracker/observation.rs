@@ -162,6 +162,7 @@ pub fn encode_particles(
                 crate::tracker::encoder::suppress_support_plane(&layout, &mut x, &m, view.color.is_some());
             }
             crate::tracker::encoder::inpaint_depth(&layout, &mut x, &mut m, view.color.is_some());
+            crate::tracker::encoder::to_chromaticity(&layout, &mut x, &m);
             // depth check input: the central surface of the raw crop
             let score = crate::tracker::encoder::central_median_depth(&layout, &raw_x, &raw_m).unwrap_or(f32::NAN);
             (x, m, share >= MIN_VALID_SHARE && has_object, score)
