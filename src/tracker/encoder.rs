@@ -9,7 +9,9 @@
 //! - colour on a `F/2 x F/2` grid, RGB in [0, 1] times `color_weight`, where the (denoised)
 //!   depth cell under the sample says "object or nearer" (normalised < 1); far background
 //!   reads as a neutral grey so that the clutter behind the object does not count. Masked
-//!   where no depth sample is valid or the camera gives no colour.
+//!   where no depth sample is valid or the camera gives no colour. By default the object's
+//!   cells are then turned into chromaticity ([`to_chromaticity`]): the light changes their
+//!   brightness, not their hue.
 //!
 //! A far camera's depth is mostly noise against a small object (the paper's 5 % at 3 m is
 //! 0.15 m per pixel, more than a mug's diameter): crops whose estimated noise
