@@ -1,10 +1,11 @@
 //! Issue 3's real-data check: on the 10 real frames of `shared/realdata/ycbv_video_0000/bop/`
 //! the mug is tracked from its detection box to within 2 cm (translation) and 1 cm (ADD-S) by
-//! the last frame, and its rotation about its axis (handle hidden) is left ambiguous. Both are
-//! met with the default codebook, whose colour cells hold chromaticity (0.9 cm, ADD-S 0.5 cm,
-//! spin spread 33 deg), and with a depth-only one. With the renders' RGB they were not: the
-//! last tests measure why, frame by frame (the real mug's shading and colours match none of its
-//! headlit templates; the mesh's own colours painted over it put the truth among the top few).
+//! the last frame (met in 7 of 8 encoder seeds), and its rotation about its axis (handle
+//! hidden) is left ambiguous: not reached reliably (2 of 8 seeds with the default chromaticity
+//! codes, 3 of 8 depth-only). One 10-frame clip is chaotic in the encoder's random training
+//! set, so the orientation points are judged over eight seeds. The last tests measure the
+//! observation model frame by frame: chromaticity ranks the true pose far higher than RGB, and
+//! the mesh's own colours painted over the mug put the truth among the top few with RGB codes.
 
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use pregrasp::camera::{ColorImage, DepthImage};
@@ -21,11 +22,6 @@ fn shared() -> PathBuf {
     std::env::var_os("PREGRASP_SHARED")
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared"))
-}
-
-/// The evaluation of the real clip with the default tracker and a 10-degree grid.
-fn evaluate_real_clip() -> SequenceOutcome {
-    evaluate_real_clip_with(CodebookConfig::default())
 }
 
 /// The evaluation of the real clip with the default tracker, a 10-degree grid and `codebook`.
@@ -50,63 +46,97 @@ fn evaluate_real_clip_with(codebook: CodebookConfig) -> SequenceOutcome {
     evaluate_sequence(&seq, &renderer, &cfg, &mut store).expect("evaluate")
 }
 
+/// Issue 3's first real-data point over eight encoder seeds ([`SEEDS`]): at least six end the
+/// clip within 2 cm and ADD-S 1 cm (measured with the default codes: seven of eight, 0.8-1.2 cm
+/// and ADD-S 0.4-0.8 cm; one 3.8 cm).
 #[test]
 fn real_mug_is_tracked_from_its_detection_box() {
-    let out = evaluate_real_clip();
-    let mug = out.traces.iter().find(|t| t.object == "025_mug").expect("mug trace");
-    assert_eq!(mug.frames.len(), 10);
-    let last = mug
-        .frames
-        .last()
-        .and_then(|f| f.errors.as_ref())
-        .expect("an estimate at the last frame");
+    let within = SEEDS
+        .iter()
+        .filter(|seed| {
+            let out = evaluate_real_clip_with(CodebookConfig {
+                seed: **seed,
+                ..CodebookConfig::default()
+            });
+            let mug = out.traces.iter().find(|t| t.object == "025_mug").expect("mug trace");
+            assert_eq!(mug.frames.len(), 10);
+            let last = mug
+                .frames
+                .last()
+                .and_then(|f| f.errors.as_ref())
+                .expect("an estimate at the last frame");
+            eprintln!(
+                "seed {seed}: translation {:.4} m, ADD-S {:.4} m",
+                last.translation_error_m, last.add_s_m
+            );
+            last.translation_error_m < 0.02 && last.add_s_m < 0.01
+        })
+        .count();
     assert!(
-        last.translation_error_m < 0.02,
-        "translation error {:.4} m",
-        last.translation_error_m
+        within * 4 >= SEEDS.len() * 3,
+        "{within} of {} encoder seeds end within 2 cm and ADD-S 1 cm",
+        SEEDS.len()
     );
-    assert!(last.add_s_m < 0.01, "ADD-S {:.4} m", last.add_s_m);
 }
 
-/// The default codebook (chromaticity colour cells): measured spread 33.2 deg (modes 0.62 at the
-/// top, 0.08 / 0.07 at 17-18 deg either side, 0.13 flipped end over end), geodesic error
-/// 15 deg, translation 0.9 cm, ADD-S 0.5 cm. With RGB colour cells the spread was 18 deg and
-/// the top mode 64 deg off (tilted and flipped modes).
+/// Encoder seeds over which the real clip's orientation points are judged: one 10-frame clip is
+/// chaotic in the encoder's random training set (with the default codes the last frame's
+/// geodesic error was 12-15 deg for two seeds and 173-177 deg, the mug turned end over end,
+/// for four of eight), so one seed passing proves little.
+const SEEDS: [u64; 8] = [1, 2, 3, 4, 5, 6, 7, 8];
+
+/// How many of [`SEEDS`] end the clip with the mug within 2 cm, ADD-S 1 cm, 30 deg geodesic,
+/// and its spin about its axis open (modes sharing the axis spread over at least 30 deg).
+fn seeds_keeping_the_spin_open(config: CodebookConfig) -> usize {
+    SEEDS
+        .iter()
+        .filter(|seed| {
+            let out = evaluate_real_clip_with(CodebookConfig {
+                seed: **seed,
+                ..config.clone()
+            });
+            let (spread, (geodesic_deg, translation_m, add_s_m)) = spin_spread(&out);
+            let ok = translation_m < 0.02 && add_s_m < 0.01 && geodesic_deg < 30.0 && spread >= 30.0;
+            eprintln!("seed {seed}: {}", if ok { "open" } else { "not" });
+            ok
+        })
+        .count()
+}
+
+/// The default codebook (chromaticity colour cells) over eight encoder seeds: measured 2 of 8
+/// (the default seed among them: spread 33 deg, geodesic 15 deg, 0.9 cm, ADD-S 0.5 cm; four
+/// seeds end with the mug upside down, 173-177 deg). RGB colour cells end 25-33 deg off in five
+/// of eight seeds.
 #[test]
+#[ignore = "not reached: with the default (chromaticity) codes 2 of 8 encoder seeds keep the spin open, four \
+            end with the mug upside down; run with --ignored"]
 fn real_mug_spin_about_its_axis_stays_open() {
-    let out = evaluate_real_clip();
     // Ambiguity about the axis (the mesh's z, the mug's height): the distribution must keep
     // several spins about it rather than pick one angle with confidence.
-    let (spread, (geodesic_deg, _, _)) = spin_spread(&out);
+    let n = seeds_keeping_the_spin_open(CodebookConfig::default());
     assert!(
-        geodesic_deg < 30.0,
-        "geodesic error {geodesic_deg:.1} deg at the last frame"
-    );
-    assert!(
-        spread >= 30.0,
-        "the spin about the axis should stay open: spread {spread:.1} deg"
+        n * 4 >= SEEDS.len() * 3,
+        "{n} of {} encoder seeds keep the spin open",
+        SEEDS.len()
     );
 }
 
 /// With a depth-only codebook (`use_color: false`, the encoder and codes learned from the
-/// mesh's depth alone) the same clip meets both of issue 3's real-data points too. Measured: translation 0.9 cm, ADD-S 0.4 cm, spin
-/// spread 36.5 deg (modes 0.88 / 0.06 / 0.06, the two small ones 17-19 deg either side).
+/// mesh's depth alone): measured 3 of 8 seeds (the default seed among them: spread 36.5 deg,
+/// geodesic 10 deg, 0.9 cm, ADD-S 0.4 cm); four end 5-9 cm off. In another draw of the
+/// training crops (`pregrasp eval --depth-only --codebook-seed 1..8`), six of eight ended
+/// 11-17 deg off: better than colour, not reliably.
 #[test]
+#[ignore = "not reached reliably: depth-only codes keep the spin open in 3 of 8 encoder seeds; run with --ignored"]
 fn real_mug_with_depth_only_codes_keeps_its_spin_open() {
-    let out = evaluate_real_clip_with(CodebookConfig {
+    let n = seeds_keeping_the_spin_open(CodebookConfig {
         use_color: false,
         ..CodebookConfig::default()
     });
-    let (spread, (geodesic_deg, translation_m, add_s_m)) = spin_spread(&out);
-    assert!(translation_m < 0.02, "translation error {translation_m:.4} m");
-    assert!(add_s_m < 0.01, "ADD-S {add_s_m:.4} m");
     assert!(
-        geodesic_deg < 30.0,
-        "geodesic error {geodesic_deg:.1} deg at the last frame"
-    );
-    assert!(
-        spread >= 30.0,
-        "the spin about the axis should stay open: spread {spread:.1} deg"
+        n * 4 >= SEEDS.len() * 3,
+        "{n} of {} encoder seeds keep the spin open",
+        SEEDS.len()
     );
 }
 

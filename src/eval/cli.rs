@@ -62,6 +62,10 @@ pub struct Args {
     /// only right when the scenes are lit like the templates (`pregrasp generate --headlight`).
     #[arg(long)]
     pub rgb: bool,
+    /// Seed of the codebooks' training crops (how much a result owes to the encoder's random
+    /// training set).
+    #[arg(long, default_value_t = CodebookConfig::default().seed)]
+    pub codebook_seed: u64,
 }
 
 impl Args {
@@ -91,6 +95,7 @@ impl Args {
                 } else {
                     ColorFeatures::Chromaticity
                 },
+                seed: self.codebook_seed,
                 ..CodebookConfig::default()
             },
             tracker: TrackerConfig::default(),
