@@ -45,6 +45,16 @@ fn args(out: &Path) -> Args {
     }
 }
 
+/// The generator's defaults with the built-in `objects` (all of them when empty), `frames`
+/// frames of `width x height` pixels.
+fn small_config(objects: &[String], frames: u32, (width, height): (u32, u32)) -> GenerateConfig {
+    let mut config = GenerateConfig::new(load_models(None, objects).expect("built-in models"));
+    config.frames = frames;
+    config.width = width;
+    config.height = height;
+    config
+}
+
 /// Closest distance from `p` to triangle `abc` (Ericson, Real-Time Collision Detection 5.1.5).
 fn point_triangle_distance(p: &Point3<f64>, a: &Point3<f64>, b: &Point3<f64>, c: &Point3<f64>) -> f64 {
     let (ab, ac, ap) = (b - a, c - a, p - a);
@@ -235,11 +245,7 @@ fn the_same_seed_gives_the_same_files() {
 
 #[test]
 fn odometry_drifts_while_localisation_stays_within_its_bound() {
-    let models = load_models(None, &["box".into(), "can".into()]).unwrap();
-    let mut config = GenerateConfig::new(models);
-    config.frames = 60;
-    config.width = 32;
-    config.height = 24;
+    let mut config = small_config(&["box".into(), "can".into()], 60, (32, 24));
     config.look_away_probability = 1.0;
     let g = generate_sequence(renderer(), &config, 11).unwrap();
     let odo = g.sequence.odometry.as_ref().unwrap();
@@ -310,11 +316,7 @@ fn odometry_drifts_while_localisation_stays_within_its_bound() {
 
 #[test]
 fn an_occluder_box_hides_the_target_from_the_robot_camera_for_a_stretch() {
-    let models = load_models(None, &[]).unwrap();
-    let mut config = GenerateConfig::new(models);
-    config.frames = 40;
-    config.width = 64;
-    config.height = 48;
+    let mut config = small_config(&[], 40, (64, 48));
     config.look_away_probability = 0.0;
     config.occluder_probability = 1.0;
     let mut placed_occluders = 0;
@@ -433,11 +435,7 @@ fn bad_inputs_give_clear_errors_and_leave_nothing_behind() {
 /// gain.
 #[test]
 fn the_light_changes_the_colours_and_nothing_else() {
-    let models = load_models(None, &[]).unwrap();
-    let mut config = GenerateConfig::new(models);
-    config.frames = 3;
-    config.width = 64;
-    config.height = 48;
+    let mut config = small_config(&[], 3, (64, 48));
     config.depth_noise_relative_sigma = 0.0;
     let lit = generate_sequence(renderer(), &config, 3).unwrap();
     config.headlight = true;

@@ -246,7 +246,7 @@ fn instance_masks_follow_occlusion() {
         },
     ];
     let out = r
-        .render_scene_with_background(&k, &Pose::identity(), &objects, clip(), [10, 20, 30])
+        .render_scene_lit(&k, &Pose::identity(), &objects, clip(), [10, 20, 30], None)
         .unwrap();
     let at = |x: u32, y: u32| (y * k.width + x) as usize;
     // Centre: the near square.

@@ -122,12 +122,13 @@ impl DemoScene {
             })
             .as_ref()?;
         let clip = crate::render::ClipRange::new(0.05, 20.0).ok()?;
-        match renderer.render_scene_with_background(
+        match renderer.render_scene_lit(
             &self.intrinsics,
             camera_from_world,
             scene,
             clip,
             DEMO_BACKGROUND_RGB,
+            None,
         ) {
             Ok(img) => Some(img),
             Err(e) => {

@@ -454,25 +454,14 @@ impl Renderer {
         objects: &[SceneObject],
         clip: ClipRange,
     ) -> Result<SceneRender, RenderError> {
-        self.render_scene_with_background(intrinsics, camera_from_world, objects, clip, [0, 0, 0])
+        self.render_scene_lit(intrinsics, camera_from_world, objects, clip, [0, 0, 0], None)
     }
 
-    /// [`Self::render_scene`] with a background colour (RGB) for pixels where nothing was hit.
-    pub fn render_scene_with_background(
-        &self,
-        intrinsics: &Intrinsics,
-        camera_from_world: &Pose,
-        objects: &[SceneObject],
-        clip: ClipRange,
-        background_rgb: [u8; 3],
-    ) -> Result<SceneRender, RenderError> {
-        self.render_scene_lit(intrinsics, camera_from_world, objects, clip, background_rgb, None)
-    }
-
-    /// [`Self::render_scene_with_background`] lit by a directional light shining from
-    /// `towards_light_in_world` (a direction, world frame; `None`: a headlight at the camera,
-    /// as codebook templates are rendered). A scene lit from elsewhere than the camera is what
-    /// real cameras see: its shading is not the templates'.
+    /// [`Self::render_scene`] with a background colour (RGB) for pixels where nothing was hit,
+    /// lit by a directional light shining from `towards_light_in_world` (a direction, world
+    /// frame; `None`: a headlight at the camera, as codebook templates are rendered). A scene
+    /// lit from elsewhere than the camera is what real cameras see: its shading is not the
+    /// templates'.
     pub fn render_scene_lit(
         &self,
         intrinsics: &Intrinsics,

@@ -90,6 +90,13 @@ impl FeatureLayout {
     pub fn dim(&self) -> usize {
         self.depth_len() + self.color_len()
     }
+    /// The depth cells (flat indices) under colour cell `(ci, cj)`: its `per x per` block, with
+    /// `per = feature_px / color_px`.
+    pub fn depth_cells_under(&self, ci: usize, cj: usize) -> impl Iterator<Item = usize> {
+        let f = self.feature_px;
+        let per = f / self.color_px();
+        (0..per).flat_map(move |a| (0..per).map(move |b| (ci * per + a) * f + cj * per + b))
+    }
 }
 
 /// Where and how to cut a crop out of an image.
@@ -243,15 +250,17 @@ const CHROMA_DARK: f32 = 0.15;
 /// changes with the light. Measured with raw RGB: on generated scenes lit from above (64
 /// sequences, 10-degree grid) the orientation error was 88.5 degrees against 30.5 with the
 /// templates' own headlight, and on the real mug the true pose ranked 24-443 of 24,624 bins.
-/// With chromaticity: 59.7 degrees on the lit scenes, rank 4-44 on the real mug, and its spin
-/// stays open. The hue pattern that tells a box from its flip (the print) survives any light.
+/// With chromaticity: 59.7 degrees on the lit scenes (every 5th frame; 53.4 every frame) and
+/// rank 4-44 on the real mug. The hue pattern that tells a box from its flip (the print)
+/// survives any light.
 /// A per-channel gain normalisation (exposure, white balance) alone did not help the real mug
 /// (rank 39-273): its mismatch is the shading, not the mean colour.
 ///
 /// Only the object's colour cells change (those over a depth cell that is object or nearer,
 /// normalised depth < 1; a crop with fewer than three is left alone); grey would map to itself
 /// anyway, masked cells stay masked. Applying it to every cell instead measured worse on the
-/// real mug (the spin's modes spread over 19 degrees against 33). Applied to templates,
+/// real mug for the default encoder seed (the spin's modes spread over 19 degrees against 33;
+/// one seed of a 10-frame clip, see `tests/eval_realdata.rs`). Applied to templates,
 /// training crops and observed crops alike, after the support plane is removed.
 pub fn to_chromaticity(layout: &FeatureLayout, x: &mut [f32], mask: &[bool]) {
     if !(layout.use_color && layout.chromaticity) {
@@ -261,14 +270,8 @@ pub fn to_chromaticity(layout: &FeatureLayout, x: &mut [f32], mask: &[bool]) {
     let e = CHROMA_DARK / 3.0 * layout.color_weight;
     let base = layout.depth_len();
     let fc = layout.color_px();
-    let f = layout.feature_px;
-    let object_cell = |ci: usize, cj: usize| -> bool {
-        let (i0, i1) = (ci * f / fc, ((ci + 1) * f / fc).max(ci * f / fc + 1).min(f));
-        let (j0, j1) = (cj * f / fc, ((cj + 1) * f / fc).max(cj * f / fc + 1).min(f));
-        (i0..i1).any(|i| (j0..j1).any(|j| !mask[i * f + j] && x[i * f + j] < 1.0))
-    };
     let cells: Vec<usize> = (0..fc * fc)
-        .filter(|&c| object_cell(c / fc, c % fc) && !mask[base + c * 3])
+        .filter(|&c| !mask[base + c * 3] && layout.depth_cells_under(c / fc, c % fc).any(|k| !mask[k] && x[k] < 1.0))
         .collect();
     if cells.len() < 3 {
         return;
@@ -404,14 +407,13 @@ pub fn inpaint_depth(layout: &FeatureLayout, x: &mut [f32], mask: &mut [bool], h
     if layout.use_color && has_color {
         let fc = layout.color_px();
         let base = layout.depth_len();
-        let per = f / fc;
         for ci in 0..fc {
             for cj in 0..fc {
                 let k0 = base + (ci * fc + cj) * 3;
                 if !mask[k0] {
                     continue;
                 }
-                let far = (0..per).all(|a| (0..per).all(|b| x[(ci * per + a) * f + cj * per + b] >= 1.0));
+                let far = layout.depth_cells_under(ci, cj).all(|k| x[k] >= 1.0);
                 if far {
                     for ch in 0..3 {
                         x[k0 + ch] = BACKGROUND_GREY * layout.color_weight;
