@@ -12,6 +12,7 @@ fn tiny_config() -> CodebookConfig {
         feature_px: 8,
         render_px: 16,
         code_dim: 16,
+        color_code_dim: 4,
         n_train: 400,
         ..CodebookConfig::default()
     }
@@ -36,6 +37,8 @@ fn cache_hits_and_invalidation() {
     assert!(b.from_cache);
     assert_eq!(a.codes, b.codes);
     assert_eq!(a.encoder.ridge_t, b.encoder.ridge_t);
+    assert_eq!(a.encoder.blocks.len(), 2, "depth and colour codes of their own");
+    assert_eq!(a.encoder.blocks, b.encoder.blocks);
     let path = only_file(dir.path());
 
     // flip one byte in the payload: checksum mismatch -> rebuilt (and rewritten)

@@ -66,6 +66,12 @@ pub struct Args {
     /// training set).
     #[arg(long, default_value_t = CodebookConfig::default().seed)]
     pub codebook_seed: u64,
+    /// Components of the code given to colour (0: one code of depth and colour together).
+    #[arg(long, default_value_t = CodebookConfig::default().color_code_dim)]
+    pub color_code_dim: usize,
+    /// Weight of the colour cosine in the similarity (0..1; the depth's is one minus it).
+    #[arg(long, default_value_t = CodebookConfig::default().color_code_weight)]
+    pub color_code_weight: f32,
 }
 
 impl Args {
@@ -96,6 +102,8 @@ impl Args {
                     ColorFeatures::Chromaticity
                 },
                 seed: self.codebook_seed,
+                color_code_dim: self.color_code_dim,
+                color_code_weight: self.color_code_weight,
                 ..CodebookConfig::default()
             },
             tracker: TrackerConfig::default(),

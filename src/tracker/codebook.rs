@@ -15,7 +15,7 @@ use crate::geometry::{Pose, RotationGrid};
 use crate::mesh::Mesh;
 use crate::tracker::TrackerError;
 use crate::tracker::encoder::{
-    CropParams, ENCODER_VERSION, Encoder, FeatureLayout, LinearDenoisingEncoder, normalise_rows, sample_crop,
+    CodeBlock, CropParams, ENCODER_VERSION, Encoder, FeatureLayout, LinearDenoisingEncoder, sample_crop,
     to_chromaticity,
 };
 use nalgebra::{Translation3, UnitQuaternion};
@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 const MAGIC: &[u8; 8] = b"PGCODEBK";
-const FORMAT_VERSION: u32 = 2;
+const FORMAT_VERSION: u32 = 3;
 
 /// How a codebook is built.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -65,6 +65,24 @@ pub struct CodebookConfig {
     /// ([`crate::tracker::encoder::to_chromaticity`]).
     #[serde(default)]
     pub color_features: ColorFeatures,
+    /// With `use_color`: depth and colour get codes of their own, this many components of
+    /// `code_dim` for the colour, and the similarity is the weighted mean of the two cosines
+    /// (a product of experts, see [`crate::tracker::encoder::finish_codes`]). 0: one code of
+    /// depth and colour together (encoder v4), where a real crop's colour, far from the mesh's,
+    /// drowned what its depth said.
+    #[serde(default = "default_color_code_dim")]
+    pub color_code_dim: usize,
+    /// Weight of the colour cosine in the similarity (the depth's is `1 - color_code_weight`).
+    #[serde(default = "default_color_code_weight")]
+    pub color_code_weight: f32,
+}
+
+fn default_color_code_dim() -> usize {
+    32
+}
+
+fn default_color_code_weight() -> f32 {
+    0.25
 }
 
 /// The colour features of a codebook.
@@ -97,6 +115,8 @@ impl Default for CodebookConfig {
             suppress_plane: true,
             whiten: 0.5,
             color_features: ColorFeatures::default(),
+            color_code_dim: default_color_code_dim(),
+            color_code_weight: default_color_code_weight(),
         }
     }
 }
@@ -108,6 +128,7 @@ impl CodebookConfig {
             feature_px: 16,
             render_px: 32,
             code_dim: 48,
+            color_code_dim: 16,
             n_train: 3_000,
             ..Self::default()
         }
@@ -162,6 +183,8 @@ struct Header {
     input_dim: usize,
     code_dim: usize,
     n_bins: usize,
+    /// The encoder's code blocks (empty: one code).
+    blocks: Vec<CodeBlock>,
 }
 
 /// The codes of one object at every bin of a grid.
@@ -327,17 +350,48 @@ impl Codebook {
             noisy.extend(x);
             nmask.extend(m);
         }
-        let encoder = LinearDenoisingEncoder::fit(
-            &clean,
-            &noisy,
-            &nmask,
-            n,
-            d,
-            config.code_dim,
-            config.ridge_lambda_rel,
-            config.whiten,
-            config.seed,
-        )?;
+        let split = layout.use_color && config.color_code_dim > 0;
+        let encoder = if split {
+            if config.color_code_dim >= config.code_dim || !(0.0..1.0).contains(&config.color_code_weight) {
+                return Err(TrackerError::Config(format!(
+                    "colour code: {} of {} components at weight {}",
+                    config.color_code_dim, config.code_dim, config.color_code_weight
+                )));
+            }
+            let (dl, cl) = (layout.depth_len(), layout.color_len());
+            let parts = [
+                (
+                    0,
+                    dl,
+                    config.code_dim - config.color_code_dim,
+                    1.0 - config.color_code_weight,
+                ),
+                (dl, cl, config.color_code_dim, config.color_code_weight),
+            ];
+            LinearDenoisingEncoder::fit_blocks(
+                &clean,
+                &noisy,
+                &nmask,
+                n,
+                d,
+                &parts,
+                config.ridge_lambda_rel,
+                config.whiten,
+                config.seed,
+            )?
+        } else {
+            LinearDenoisingEncoder::fit(
+                &clean,
+                &noisy,
+                &nmask,
+                n,
+                d,
+                config.code_dim,
+                config.ridge_lambda_rel,
+                config.whiten,
+                config.seed,
+            )?
+        };
         drop((clean, noisy, nmask));
 
         // codes of every bin: one viewpoint (all in-plane rotations) per task
@@ -351,7 +405,6 @@ impl Codebook {
                 template(v, i as f64 * step, &mut x[i * d..(i + 1) * d], &mut mask);
             }
             encoder.encode_templates(&x, ni, out);
-            normalise_rows(out, kd);
         });
         let median_depth_norm: Vec<f32> = (0..grid.n_viewpoints())
             .into_par_iter()
@@ -564,6 +617,7 @@ fn write_cache(path: &Path, cb: &Codebook) -> Result<(), TrackerError> {
         input_dim: cb.encoder.input_dim,
         code_dim: cb.encoder.code_dim,
         n_bins: cb.grid.len(),
+        blocks: cb.encoder.blocks.clone(),
     };
     let hj = serde_json::to_vec(&header).map_err(|e| TrackerError::Config(e.to_string()))?;
     let mut buf = Vec::with_capacity(cb.codes.len() * 4 + 1024);
@@ -642,6 +696,13 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
             .collect())
     };
     let (d, k) = (header.input_dim, header.code_dim);
+    if header
+        .blocks
+        .iter()
+        .any(|b| b.input_start + b.input_len > d || b.code_start + b.code_len > k || !b.weight.is_finite())
+    {
+        return Err(bad("code blocks out of range"));
+    }
     let mean_clean = read(d)?;
     let mean_observed = read(d)?;
     let pca_t = read(d * k)?;
@@ -663,6 +724,7 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
             mean_observed,
             pca_t,
             ridge_t,
+            blocks: header.blocks,
         },
         codes,
         median_depth_norm,

@@ -21,7 +21,7 @@
 
 use crate::camera::{ColorImage, DepthImage, Intrinsics};
 use crate::tracker::codebook::Codebook;
-use crate::tracker::encoder::{CropParams, Encoder, normalise_rows, sample_crop};
+use crate::tracker::encoder::{CropParams, Encoder, sample_crop};
 use nalgebra::Vector3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -190,7 +190,6 @@ pub fn encode_particles(
             codes[p * kd..(p + 1) * kd].fill(0.0);
         }
     }
-    normalise_rows(&mut codes, kd);
     (codes, valid, score, crops_s, t1.elapsed().as_secs_f64())
 }
 
