@@ -72,6 +72,39 @@ pub struct Args {
     /// Weight of the colour cosine in the similarity (0..1; the depth's is one minus it).
     #[arg(long, default_value_t = CodebookConfig::default().color_code_weight)]
     pub color_code_weight: f32,
+    /// A JSON file of tracker settings that override the defaults, only the fields given, e.g.
+    /// `{"observation": {"sigma": 0.08}, "blur_sigma_bins": 1.0}`.
+    #[arg(long)]
+    pub tracker_config: Option<PathBuf>,
+}
+
+/// The default tracker configuration with the fields of `overrides` (a JSON object, nested
+/// objects merged field by field) put over it. Unknown fields and wrong types are errors.
+pub fn tracker_config_with(overrides: &serde_json::Value) -> anyhow::Result<TrackerConfig> {
+    fn merge(base: &mut serde_json::Value, over: &serde_json::Value, path: &str) -> anyhow::Result<()> {
+        match (base, over) {
+            (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
+                for (k, v) in o {
+                    let here = format!("{path}{k}");
+                    let slot = b
+                        .get_mut(k)
+                        .ok_or_else(|| anyhow::anyhow!("tracker config: unknown field `{here}`"))?;
+                    merge(slot, v, &format!("{here}."))?;
+                }
+                Ok(())
+            }
+            (b, o) => {
+                *b = o.clone();
+                Ok(())
+            }
+        }
+    }
+    if !overrides.is_object() {
+        anyhow::bail!("tracker config: expected a JSON object");
+    }
+    let mut base = serde_json::to_value(TrackerConfig::default())?;
+    merge(&mut base, overrides, "")?;
+    serde_json::from_value(base).map_err(|e| anyhow::anyhow!("tracker config: {e}"))
 }
 
 impl Args {
@@ -106,7 +139,16 @@ impl Args {
                 color_code_weight: self.color_code_weight,
                 ..CodebookConfig::default()
             },
-            tracker: TrackerConfig::default(),
+            tracker: match &self.tracker_config {
+                Some(p) => {
+                    let text = std::fs::read_to_string(p)
+                        .map_err(|e| anyhow::anyhow!("tracker config {}: {e}", p.display()))?;
+                    let v: serde_json::Value = serde_json::from_str(&text)
+                        .map_err(|e| anyhow::anyhow!("tracker config {}: {e}", p.display()))?;
+                    tracker_config_with(&v)?
+                }
+                None => TrackerConfig::default(),
+            },
             detection_seed: self.seed,
             max_frames: self.max_frames,
             frame_stride: self.frame_stride,
@@ -143,4 +185,24 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     println!("wrote {}", args.out.join("results.json").display());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tracker_overrides_change_only_the_fields_given() {
+        let c = tracker_config_with(&serde_json::json!({"observation": {"sigma": 0.08}, "blur_sigma_bins": 1.5}))
+            .expect("valid overrides");
+        let d = TrackerConfig::default();
+        assert_eq!(c.observation.sigma, 0.08);
+        assert_eq!(c.blur_sigma_bins, 1.5);
+        assert_eq!(c.observation.loglik_floor, d.observation.loglik_floor);
+        assert_eq!(c.particles_from_robot_camera, d.particles_from_robot_camera);
+        let unknown = tracker_config_with(&serde_json::json!({"observation": {"sigmaa": 0.08}}));
+        assert!(unknown.unwrap_err().to_string().contains("observation.sigmaa"));
+        assert!(tracker_config_with(&serde_json::json!({"blur_sigma_bins": "wide"})).is_err());
+        assert!(tracker_config_with(&serde_json::json!([1, 2])).is_err());
+    }
 }

@@ -974,11 +974,12 @@ impl LinearDenoisingEncoder {
             return Err(TrackerError::Config(format!("encoder fit: bad sizes (n {n}, d {d})")));
         }
         let w_total: f32 = parts.iter().map(|p| p.3).sum();
+        let positive = |w: f32| w.is_finite() && w > 0.0;
         if parts.is_empty()
             || parts
                 .iter()
-                .any(|&(s, l, k, w)| l == 0 || k == 0 || s + l > d || !(w > 0.0))
-            || !(w_total > 0.0)
+                .any(|&(s, l, k, w)| l == 0 || k == 0 || s + l > d || !positive(w))
+            || !positive(w_total)
         {
             return Err(TrackerError::Config(format!("encoder fit: bad blocks {parts:?}")));
         }
