@@ -879,14 +879,52 @@ impl LinearDenoisingEncoder {
         whiten: f64,
         seed: u64,
     ) -> Result<Self, TrackerError> {
-        if n < 2 || clean.len() != n * d || corrupted.len() != n * d || corrupted_mask.len() != n * d {
-            return Err(TrackerError::Config(format!("encoder fit: bad sizes (n {n}, d {d})")));
+        Self::fit_columns(
+            clean,
+            corrupted,
+            corrupted_mask,
+            n,
+            d,
+            0..d,
+            code_dim,
+            ridge_lambda_rel,
+            whiten,
+            seed,
+        )
+    }
+
+    /// [`Self::fit`] on the columns `cols` of row-major `n x stride` matrices (one block of
+    /// [`Self::fit_blocks`], read in place: the training set is the build's largest buffer).
+    #[allow(clippy::too_many_arguments)] // the sizes travel with the flat buffers
+    fn fit_columns(
+        clean: &[f32],
+        corrupted: &[f32],
+        corrupted_mask: &[bool],
+        n: usize,
+        stride: usize,
+        cols: std::ops::Range<usize>,
+        code_dim: usize,
+        ridge_lambda_rel: f64,
+        whiten: f64,
+        seed: u64,
+    ) -> Result<Self, TrackerError> {
+        let d = cols.len();
+        if n < 2
+            || d == 0
+            || cols.end > stride
+            || clean.len() != n * stride
+            || corrupted.len() != n * stride
+            || corrupted_mask.len() != n * stride
+        {
+            return Err(TrackerError::Config(format!(
+                "encoder fit: bad sizes (n {n}, columns {cols:?} of {stride})"
+            )));
         }
         let k = code_dim.min(d);
         let mean = |x: &[f32]| -> Vec<f32> {
             let mut m = vec![0f64; d];
-            for row in x.chunks(d) {
-                for (a, b) in m.iter_mut().zip(row) {
+            for row in x.chunks(stride) {
+                for (a, b) in m.iter_mut().zip(&row[cols.clone()]) {
                     *a += *b as f64;
                 }
             }
@@ -894,8 +932,14 @@ impl LinearDenoisingEncoder {
         };
         let mean_clean = mean(clean);
         let a: Vec<f32> = clean
-            .par_chunks(d)
-            .flat_map_iter(|row| row.iter().zip(&mean_clean).map(|(x, m)| x - m).collect::<Vec<_>>())
+            .par_chunks(stride)
+            .flat_map_iter(|row| {
+                row[cols.clone()]
+                    .iter()
+                    .zip(&mean_clean)
+                    .map(|(x, m)| x - m)
+                    .collect::<Vec<_>>()
+            })
             .collect();
         let g = gram(&a, d, n);
         let p = top_eigenvectors(&g, k, seed)?; // d x k
@@ -919,12 +963,26 @@ impl LinearDenoisingEncoder {
         }
         // corrupted, imputed and centred
         let imputed: Vec<f32> = corrupted
-            .iter()
-            .zip(corrupted_mask)
-            .enumerate()
-            .map(|(i, (&x, &m))| if m { mean_clean[i % d] } else { x })
+            .par_chunks(stride)
+            .zip(corrupted_mask.par_chunks(stride))
+            .flat_map_iter(|(row, mask)| {
+                row[cols.clone()]
+                    .iter()
+                    .zip(&mask[cols.clone()])
+                    .zip(&mean_clean)
+                    .map(|((&x, &m), &mc)| if m { mc } else { x })
+                    .collect::<Vec<_>>()
+            })
             .collect();
-        let mean_observed = mean(&imputed);
+        let mean_observed = {
+            let mut m = vec![0f64; d];
+            for row in imputed.chunks(d) {
+                for (a, b) in m.iter_mut().zip(row) {
+                    *a += *b as f64;
+                }
+            }
+            m.into_iter().map(|v| (v / n as f64) as f32).collect::<Vec<f32>>()
+        };
         let at: Vec<f32> = imputed
             .par_chunks(d)
             .flat_map_iter(|row| row.iter().zip(&mean_observed).map(|(x, m)| x - m).collect::<Vec<_>>())
@@ -983,20 +1041,15 @@ impl LinearDenoisingEncoder {
         {
             return Err(TrackerError::Config(format!("encoder fit: bad blocks {parts:?}")));
         }
-        let cut = |x: &[f32], s: usize, l: usize| -> Vec<f32> {
-            x.chunks(d).flat_map(|row| row[s..s + l].iter().copied()).collect()
-        };
-        let cut_mask = |x: &[bool], s: usize, l: usize| -> Vec<bool> {
-            x.chunks(d).flat_map(|row| row[s..s + l].iter().copied()).collect()
-        };
         let mut fitted = Vec::with_capacity(parts.len());
         for (b, &(s, l, k, _)) in parts.iter().enumerate() {
-            let e = Self::fit(
-                &cut(clean, s, l),
-                &cut(corrupted, s, l),
-                &cut_mask(corrupted_mask, s, l),
+            let e = Self::fit_columns(
+                clean,
+                corrupted,
+                corrupted_mask,
                 n,
-                l,
+                d,
+                s..s + l,
                 k,
                 ridge_lambda_rel,
                 whiten,
