@@ -879,6 +879,28 @@ pub struct SliceTraining<'a> {
     pub d: usize,
 }
 
+impl<'a> SliceTraining<'a> {
+    /// Checks that the three buffers hold `n` rows of `d`.
+    pub fn new(
+        clean: &'a [f32],
+        corrupted: &'a [f32],
+        corrupted_mask: &'a [bool],
+        n: usize,
+        d: usize,
+    ) -> Result<Self, TrackerError> {
+        if clean.len() != n * d || corrupted.len() != n * d || corrupted_mask.len() != n * d {
+            return Err(TrackerError::Config(format!("encoder fit: bad sizes (n {n}, d {d})")));
+        }
+        Ok(Self {
+            clean,
+            corrupted,
+            corrupted_mask,
+            n,
+            d,
+        })
+    }
+}
+
 impl TrainingPairs for SliceTraining<'_> {
     fn len(&self) -> usize {
         self.n
@@ -988,16 +1010,7 @@ impl LinearDenoisingEncoder {
         whiten: f64,
         seed: u64,
     ) -> Result<Self, TrackerError> {
-        if clean.len() != n * d || corrupted.len() != n * d || corrupted_mask.len() != n * d {
-            return Err(TrackerError::Config(format!("encoder fit: bad sizes (n {n}, d {d})")));
-        }
-        let data = SliceTraining {
-            clean,
-            corrupted,
-            corrupted_mask,
-            n,
-            d,
-        };
+        let data = SliceTraining::new(clean, corrupted, corrupted_mask, n, d)?;
         Self::fit_streamed(&data, CodeLayout::One { code_dim }, ridge_lambda_rel, whiten, seed)
     }
 
@@ -1016,21 +1029,13 @@ impl LinearDenoisingEncoder {
         whiten: f64,
         seed: u64,
     ) -> Result<Self, TrackerError> {
-        if clean.len() != n * d || corrupted.len() != n * d || corrupted_mask.len() != n * d {
-            return Err(TrackerError::Config(format!("encoder fit: bad sizes (n {n}, d {d})")));
-        }
-        let data = SliceTraining {
-            clean,
-            corrupted,
-            corrupted_mask,
-            n,
-            d,
-        };
+        let data = SliceTraining::new(clean, corrupted, corrupted_mask, n, d)?;
         Self::fit_streamed(&data, CodeLayout::Blocks(parts), ridge_lambda_rel, whiten, seed)
     }
 
-    /// The fit from sums over the training pairs, read in chunks of [`FIT_CHUNK`] rows on all
-    /// threads: a pass over the clean rows for their mean, then one over the pairs for the
+    /// The fit from sums over the training pairs, read in chunks of [`FIT_CHUNK`] rows (each
+    /// chunk made and multiplied on all threads): a pass over the clean rows for their mean,
+    /// then one over the pairs for the
     /// Gram matrices of the clean and the corrupted rows and their cross term. PCA, whitening
     /// and the ridge regression need nothing else, so memory does not grow with the number of
     /// training crops.
