@@ -47,7 +47,7 @@ pub struct CodebookConfig {
     /// Corrupted training crops for the ridge regression. 36,000 by default: with 12,000 the
     /// real mug clip's outcome hung on which crops were drawn (over eight training seeds the
     /// last frame's geodesic error was 11-57 deg, the spin left open in four); with 36,000 it is
-    /// 12-16 deg in all eight, the spin open in six. The fit keeps only sums over the crops
+    /// 12-16 deg in all eight, the spin open in seven. The fit keeps only sums over the crops
     /// ([`LinearDenoisingEncoder::fit_streamed`]), so more crops cost build time, not memory.
     pub n_train: usize,
     pub ridge_lambda_rel: f64,
