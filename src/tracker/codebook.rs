@@ -356,25 +356,21 @@ impl Codebook {
                 x
             },
             pairs: |rows: std::ops::Range<usize>| -> (Vec<f32>, Vec<f32>, Vec<bool>) {
-                let made: Vec<(Vec<f32>, Vec<f32>, Vec<bool>)> = jobs[rows]
-                    .par_iter()
-                    .map(|&(v, i, seed)| {
-                        let mut clean = vec![0f32; d];
+                let m = rows.len();
+                let (mut clean, mut noisy, mut nmask) = (vec![0f32; m * d], vec![0f32; m * d], vec![false; m * d]);
+                clean
+                    .par_chunks_mut(d)
+                    .zip(noisy.par_chunks_mut(d))
+                    .zip(nmask.par_chunks_mut(d))
+                    .zip(&jobs[rows])
+                    .for_each(|(((c, x), k), &(v, i, seed))| {
                         let mut mask = vec![false; d];
-                        template(v, i as f64 * step, &mut clean, &mut mask);
-                        let (noisy, nmask) =
+                        template(v, i as f64 * step, c, &mut mask);
+                        let (noisy, noisy_mask) =
                             corrupt(&layout, &views[v], config, diameter_m, i as f64 * step, step, seed);
-                        (clean, noisy, nmask)
-                    })
-                    .collect();
-                let mut clean = Vec::with_capacity(made.len() * d);
-                let mut noisy = Vec::with_capacity(made.len() * d);
-                let mut nmask = Vec::with_capacity(made.len() * d);
-                for (c, x, m) in made {
-                    clean.extend(c);
-                    noisy.extend(x);
-                    nmask.extend(m);
-                }
+                        x.copy_from_slice(&noisy);
+                        k.copy_from_slice(&noisy_mask);
+                    });
                 (clean, noisy, nmask)
             },
         };

@@ -779,17 +779,14 @@ pub fn finish_codes(blocks: &[CodeBlock], mask: Option<&[bool]>, input_dim: usiz
         normalise_rows(out, k);
         return;
     }
+    let mut present = vec![true; blocks.len()];
     for (r, row) in out.chunks_mut(k).enumerate() {
-        let present: Vec<bool> = blocks
-            .iter()
-            .map(|b| match mask {
-                Some(m) => {
-                    let m = &m[r * input_dim + b.input_start..r * input_dim + b.input_start + b.input_len];
-                    !m.iter().all(|v| *v)
-                }
-                None => true,
-            })
-            .collect();
+        if let Some(m) = mask {
+            for (p, b) in present.iter_mut().zip(blocks) {
+                let start = r * input_dim + b.input_start;
+                *p = !m[start..start + b.input_len].iter().all(|v| *v);
+            }
+        }
         let w_sum: f32 = blocks
             .iter()
             .zip(&present)
@@ -1034,11 +1031,11 @@ impl LinearDenoisingEncoder {
     }
 
     /// The fit from sums over the training pairs, read in chunks of [`FIT_CHUNK`] rows (each
-    /// chunk made and multiplied on all threads): a pass over the clean rows for their mean,
-    /// then one over the pairs for the
-    /// Gram matrices of the clean and the corrupted rows and their cross term. PCA, whitening
-    /// and the ridge regression need nothing else, so memory does not grow with the number of
-    /// training crops.
+    /// chunk made and multiplied on all threads): a pass over the clean rows for their mean
+    /// (the imputation of missing values needs it before the second pass), then one over the
+    /// pairs for the Gram matrices of the clean and the corrupted rows and their cross term.
+    /// PCA, whitening and the ridge regression need nothing else, so memory does not grow with
+    /// the number of training crops.
     pub fn fit_streamed(
         data: &dyn TrainingPairs,
         layout: CodeLayout,
@@ -1103,8 +1100,11 @@ impl LinearDenoisingEncoder {
                     for j in 0..l {
                         let i = row * d + s + j;
                         let mc = mean_clean[s + j];
-                        xc[row * l + j] = clean[i] - mc;
-                        xo[row * l + j] = if mask[i] { mc } else { noisy[i] } - FIT_SHIFT;
+                        let (c, o) = (clean[i] - mc, if mask[i] { mc } else { noisy[i] } - FIT_SHIFT);
+                        xc[row * l + j] = c;
+                        xo[row * l + j] = o;
+                        acc.sum_c[j] += c as f64;
+                        acc.sum_o[j] += o as f64;
                     }
                 }
                 let (cc, (oo, oc)) = rayon::join(
@@ -1114,12 +1114,6 @@ impl LinearDenoisingEncoder {
                 for (a, b) in [(&mut acc.cc, cc), (&mut acc.oo, oo), (&mut acc.oc, oc)] {
                     for (x, y) in a.iter_mut().zip(b.iter()) {
                         *x += *y as f64;
-                    }
-                }
-                for row in 0..m {
-                    for j in 0..l {
-                        acc.sum_o[j] += xo[row * l + j] as f64;
-                        acc.sum_c[j] += xc[row * l + j] as f64;
                     }
                 }
             }
