@@ -48,6 +48,7 @@
 mod adapter;
 mod batch;
 mod cull;
+pub mod raster;
 mod readback;
 
 pub use cull::invisible_faces;

@@ -175,7 +175,7 @@ impl ViewSource for CpuViews<'_> {
         Ok(camera_from_object
             .par_iter()
             .map(|p| {
-                let img = crate::tracker::raster::render(intrinsics, &[(self.0, *p)], 0.01, [0, 0, 0]);
+                let img = crate::render::raster::render(intrinsics, &[(self.0, *p)], 0.01, [0, 0, 0]);
                 (img.depth, Some(img.color))
             })
             .collect())
