@@ -40,20 +40,17 @@ pub fn gt_info(alone: &[bool], visible: &[bool], width: u32) -> GtInfo {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::Intrinsics;
-    use crate::render::raster::silhouette;
-    use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
     #[test]
     fn boxes_and_fractions_of_a_silhouette() {
-        // a 0.2 x 0.1 m face at 1 m with f = 100 px: 20 x 10 px
-        let mesh = crate::mesh::builtin_box([0.2, 0.1, 0.05], [[1, 1, 1], [2, 2, 2]]);
-        let k = Intrinsics::from_focal(64, 48, 100.0).unwrap();
-        let pose = Isometry3::from_parts(Translation3::new(0.0, 0.0, 1.025), UnitQuaternion::identity());
-        let m = silhouette(&mesh, &pose, &k);
+        // a 20 x 10 px rectangle with its top-left pixel at (22, 19) in a 64 x 48 image
+        let m: Vec<bool> = (0..64 * 48)
+            .map(|i| (22..42).contains(&(i % 64)) && (19..29).contains(&(i / 64)))
+            .collect();
         assert_eq!(bbox_of(&m, 64), [22, 19, 20, 10]);
         let half: Vec<bool> = m.iter().enumerate().map(|(i, v)| *v && i % 64 < 32).collect();
         let info = gt_info(&m, &half, 64);
+        assert_eq!(info.px_count_all, Some(200));
         assert_eq!(info.px_count_visib, Some(100));
         assert_eq!(info.visib_fract, Some(0.5));
         assert_eq!(info.bbox_visib, Some([22, 19, 10, 10]));
