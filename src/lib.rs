@@ -2,7 +2,7 @@
 //!
 //! See `ARCHITECTURE.md` for the modules and the data flow
 //! (frame -> tracker -> decision -> API). Domain modules (`geometry`, `camera`, `mesh`,
-//! `render`, `dataset`, `generate`, `tracker`, `eval`, `grasp`) never import axum or utoipa;
+//! `render`, `dataset`, `generate`, `tracker`, `eval`, `grasp`, `symmetry`) never import axum or utoipa;
 //! `api` converts.
 
 pub mod api;
@@ -14,4 +14,5 @@ pub mod geometry;
 pub mod grasp;
 pub mod mesh;
 pub mod render;
+pub mod symmetry;
 pub mod tracker;
