@@ -2,6 +2,11 @@
 //!
 //! Camera frames are optical frames: x right, y down, z forward. Depth images hold z-depth in
 //! metres along the optical axis; 0 means "no reading".
+//!
+//! Pixel coordinates follow BOP, OpenCV and ROS `CameraInfo`: the centre of pixel `(x, y)` is at
+//! `(u, v) = (x, y)`, so pixel `(x, y)` covers `[x - 0.5, x + 0.5) x [y - 0.5, y + 0.5)` and `k`
+//! is used as those tools give it. Integer bounding boxes (`[x, y, w, h]`) count pixels as BOP
+//! does: columns `x .. x + w`, so they span `[x - 0.5, x + w - 0.5)` in pixel coordinates.
 
 use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
@@ -69,7 +74,8 @@ impl Intrinsics {
         Self::new(width, height, k)
     }
 
-    /// Square pixels, principal point at the image centre.
+    /// Square pixels, principal point at the image centre (`(w - 1) / 2`, `(h - 1) / 2`: the
+    /// middle of the pixel grid when pixel centres are at integers).
     pub fn from_focal(width: u32, height: u32, f_px: f64) -> Result<Self, CameraError> {
         Self::new(
             width,
@@ -77,10 +83,10 @@ impl Intrinsics {
             [
                 f_px,
                 0.0,
-                width as f64 / 2.0,
+                (width as f64 - 1.0) / 2.0,
                 0.0,
                 f_px,
-                height as f64 / 2.0,
+                (height as f64 - 1.0) / 2.0,
                 0.0,
                 0.0,
                 1.0,
@@ -101,8 +107,8 @@ impl Intrinsics {
         self.k[5]
     }
 
-    /// Pixel coordinates (u right, v down; pixel centres at integer + 0.5) of a point in the
-    /// camera frame; `None` behind the camera.
+    /// Pixel coordinates (u right, v down; the centre of pixel `(x, y)` at `(x, y)`) of a point
+    /// in the camera frame; `None` behind the camera.
     pub fn project(&self, p: &Point3<f64>) -> Option<[f64; 2]> {
         if p.z <= 1e-9 || !p.z.is_finite() {
             return None;
@@ -110,9 +116,15 @@ impl Intrinsics {
         Some([self.fx() * p.x / p.z + self.cx(), self.fy() * p.y / p.z + self.cy()])
     }
 
-    /// True when the pixel lies inside the image.
+    /// True when the pixel coordinates lie inside the image (on some pixel's area).
     pub fn contains(&self, uv: [f64; 2]) -> bool {
-        uv[0] >= 0.0 && uv[1] >= 0.0 && uv[0] < self.width as f64 && uv[1] < self.height as f64
+        uv[0] >= -0.5 && uv[1] >= -0.5 && uv[0] < self.width as f64 - 0.5 && uv[1] < self.height as f64 - 0.5
+    }
+
+    /// The pixel `(x, y)` whose area holds the pixel coordinates `uv`; `None` outside the image.
+    pub fn pixel_at(&self, uv: [f64; 2]) -> Option<(u32, u32)> {
+        self.contains(uv)
+            .then(|| (pixel_index(uv[0]) as u32, pixel_index(uv[1]) as u32))
     }
 
     /// The point at pixel `(u, v)` with z-depth `depth_m`.
@@ -129,7 +141,8 @@ impl Intrinsics {
         self.unproject(uv, 1.0).coords.normalize()
     }
 
-    /// Intrinsics of the same camera at another resolution (scales `k`).
+    /// Intrinsics of the same camera at another resolution: the image's edges stay where they
+    /// are, so the principal point maps as `(c + 0.5) s - 0.5` with pixel centres at integers.
     pub fn scaled(&self, width: u32, height: u32) -> Result<Self, CameraError> {
         let sx = width as f64 / self.width as f64;
         let sy = height as f64 / self.height as f64;
@@ -137,9 +150,25 @@ impl Intrinsics {
         Self::new(
             width,
             height,
-            [k[0] * sx, 0.0, k[2] * sx, 0.0, k[4] * sy, k[5] * sy, 0.0, 0.0, 1.0],
+            [
+                k[0] * sx,
+                0.0,
+                (k[2] + 0.5) * sx - 0.5,
+                0.0,
+                k[4] * sy,
+                (k[5] + 0.5) * sy - 0.5,
+                0.0,
+                0.0,
+                1.0,
+            ],
         )
     }
+}
+
+/// The index of the pixel whose area holds the pixel coordinate `c` (pixel centres at
+/// integers, so this rounds half up); may be negative or past the image.
+pub fn pixel_index(c: f64) -> i64 {
+    (c + 0.5).floor() as i64
 }
 
 /// A z-depth image in metres, row-major; 0 means no reading.
@@ -229,7 +258,7 @@ pub fn backproject(depth: &DepthImage, intrinsics: &Intrinsics) -> Vec<Point3<f6
         for x in 0..depth.width {
             let d = depth.get(x, y);
             if d > 0.0 {
-                out.push(intrinsics.unproject([x as f64 + 0.5, y as f64 + 0.5], d as f64));
+                out.push(intrinsics.unproject([x as f64, y as f64], d as f64));
             }
         }
     }
@@ -279,6 +308,40 @@ mod tests {
         let d = DepthImage::from_u16_mm(2, 1, &[1000, 0], 1.0).unwrap();
         assert_eq!(d.data_m, vec![1.0, 0.0]);
         assert_eq!(d.to_u16_mm(0.1), vec![10000, 0]);
+    }
+
+    #[test]
+    fn pixel_centres_are_at_integers_as_in_bop_and_opencv() {
+        let c = Intrinsics::from_focal(640, 480, 615.0).unwrap();
+        assert_eq!((c.cx(), c.cy()), (319.5, 239.5));
+        // the optical axis passes through the middle of the pixel grid
+        assert_eq!(c.project(&Point3::new(0.0, 0.0, 1.0)).unwrap(), [319.5, 239.5]);
+        // a point on the ray through pixel (0, 0)'s centre lands at (0, 0), which is in pixel (0, 0)
+        let p = c.unproject([0.0, 0.0], 2.0);
+        let uv = c.project(&p).unwrap();
+        assert_relative_eq!(uv[0], 0.0, epsilon = 1e-9);
+        assert_eq!(c.pixel_at(uv), Some((0, 0)));
+        // pixel (0, 0) spans [-0.5, 0.5)
+        assert_eq!(c.pixel_at([-0.49, 0.49]), Some((0, 0)));
+        assert_eq!(c.pixel_at([0.5, -0.5]), Some((1, 0)));
+        assert_eq!(c.pixel_at([-0.51, 0.0]), None);
+        assert_eq!(c.pixel_at([639.49, 479.49]), Some((639, 479)));
+        assert_eq!(c.pixel_at([639.5, 0.0]), None);
+        assert_eq!(pixel_index(-0.6), -1);
+    }
+
+    #[test]
+    fn scaling_keeps_the_image_edges() {
+        let c = Intrinsics::from_focal(640, 480, 615.0).unwrap();
+        let half = c.scaled(320, 240).unwrap();
+        // from_focal's centre maps to the smaller image's centre
+        assert_relative_eq!(half.cx(), 159.5, epsilon = 1e-12);
+        assert_relative_eq!(half.cy(), 119.5, epsilon = 1e-12);
+        // a ray through the left edge of pixel 0 (u = -0.5) still hits the left edge
+        let p = c.unproject([-0.5, 100.0], 1.0);
+        assert_relative_eq!(half.project(&p).unwrap()[0], -0.5, epsilon = 1e-9);
+        let back = half.scaled(640, 480).unwrap();
+        assert_relative_eq!(back.cx(), c.cx(), epsilon = 1e-12);
     }
 
     #[test]

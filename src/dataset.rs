@@ -202,7 +202,7 @@ pub struct CameraStream {
 }
 
 /// Detections are the tracker's type: the stand-ins of [`Sequence::detections`] feed it directly.
-pub use crate::tracker::Detection;
+pub use crate::sensor::Detection;
 
 /// One entry of `odometry.json`, in memory (metres).
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -648,16 +648,17 @@ function buildGeometry(tracks) {
     const css = colors.cameraCss(cam.id);
     const col = rgba(css, 0.95);
     const o = pose.t;
+    // the image's outer edges: pixel centres are at integers, so the edges at -0.5 and w - 0.5
     const corners = [
-      [0, 0],
-      [intr.width, 0],
-      [intr.width, intr.height],
-      [0, intr.height],
+      [-0.5, -0.5],
+      [intr.width - 0.5, -0.5],
+      [intr.width - 0.5, intr.height - 0.5],
+      [-0.5, intr.height - 0.5],
     ].map(([u, v]) => transformPoint(pose, unprojectPixel(intr.k, u, v, FRUSTUM_DEPTH_M)));
     for (const c of corners) g.line(o, c, col);
     g.polyline(corners, col, true);
     // A tick on the top edge shows which way is up in the image (optical y points down).
-    const top = transformPoint(pose, unprojectPixel(intr.k, intr.width / 2, -intr.height * 0.15, FRUSTUM_DEPTH_M));
+    const top = transformPoint(pose, unprojectPixel(intr.k, (intr.width - 1) / 2, -intr.height * 0.15, FRUSTUM_DEPTH_M));
     g.line(corners[0], top, col);
     g.line(corners[1], top, col);
     g.label(o, cam.id, css);

@@ -2,7 +2,7 @@
 // boxes and every object's particles projected into it (pinhole model, optical frame x right,
 // y down, z forward). Images are reloaded at most every MIN_RELOAD_MS per camera.
 
-import { fitCanvas, invertPose, parsePose, projectPixel, transformPoint } from "./math.js";
+import { fitCanvas, insideImage, invertPose, parsePose, pixelToCanvas, projectPixel, transformPoint } from "./math.js";
 
 const MIN_RELOAD_MS = 400;
 const FRAME_HEIGHT_PX = 190; // matches .camera-frame in style.css
@@ -134,9 +134,10 @@ export class CameraPanel {
       for (const t of this.tracks) {
         for (const p of t.particles ?? []) {
           const uv = projectPixel(intr.k, transformPoint(cameraFromWorld, p.position_world_m));
-          if (!uv || uv[0] < 0 || uv[1] < 0 || uv[0] >= intr.width || uv[1] >= intr.height) continue;
+          if (!uv || !insideImage(uv, intr.width, intr.height)) continue;
+          const [x, y] = pixelToCanvas(uv, s);
           ctx.fillStyle = this.colors.cameraCss(p.camera);
-          ctx.fillRect(uv[0] * s - 1.5 * dpr, uv[1] * s - 1.5 * dpr, 3 * dpr, 3 * dpr);
+          ctx.fillRect(x - 1.5 * dpr, y - 1.5 * dpr, 3 * dpr, 3 * dpr);
           projected += 1;
         }
       }

@@ -62,7 +62,8 @@ export function invertPose(p) {
 }
 
 /** Projects a point in the camera's optical frame (x right, y down, z forward) with the 3x3
- *  intrinsic matrix k (row-major nested arrays or flat 9). Returns [u, v] in pixels or null. */
+ *  intrinsic matrix k (row-major nested arrays or flat 9). Returns [u, v] in pixel coordinates
+ *  (BOP, OpenCV and ROS: the centre of pixel (x, y) is at (x, y)) or null. */
 export function projectPixel(k, pCamera) {
   if (pCamera[2] <= 1e-6) return null;
   const K = flatK(k);
@@ -71,12 +72,24 @@ export function projectPixel(k, pCamera) {
   return [K[0] * x + K[1] * y + K[2], K[4] * y + K[5]];
 }
 
-/** Back-projects pixel (u, v) to the point at depth z in the camera's optical frame. */
+/** Back-projects pixel coordinates (u, v) to the point at depth z in the camera's optical frame. */
 export function unprojectPixel(k, u, v, z) {
   const K = flatK(k);
   const y = (v - K[5]) / K[4];
   const x = (u - K[2] - K[1] * y) / K[0];
   return [x * z, y * z, z];
+}
+
+/** Pixel coordinates to image-space coordinates of a canvas showing the whole image at `scale`
+ *  canvas pixels per image pixel: pixel (0, 0) covers [0, scale) there, its centre is at
+ *  scale / 2. Integer BOP boxes [x, y, w, h] need no shift: their edges are pixel edges. */
+export function pixelToCanvas(uv, scale) {
+  return [(uv[0] + 0.5) * scale, (uv[1] + 0.5) * scale];
+}
+
+/** True when pixel coordinates (u, v) fall on a pixel of a width x height image. */
+export function insideImage(uv, width, height) {
+  return uv[0] >= -0.5 && uv[1] >= -0.5 && uv[0] < width - 0.5 && uv[1] < height - 0.5;
 }
 
 export function flatK(k) {

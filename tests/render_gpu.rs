@@ -3,7 +3,7 @@
 //! skip) when none is found.
 
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
-use pregrasp::camera::{DepthImage, Intrinsics};
+use pregrasp::camera::{DepthImage, Intrinsics, pixel_index};
 use pregrasp::geometry::{BinIndex, Pose, RotationGrid};
 use pregrasp::mesh::{Mesh, builtin_box};
 use pregrasp::render::{ClipRange, Renderer, SceneObject};
@@ -38,11 +38,7 @@ fn square(side_m: f32, rgb: [u8; 3]) -> Mesh {
 }
 
 fn pixel_ray(k: &Intrinsics, x: u32, y: u32) -> Vector3<f64> {
-    Vector3::new(
-        (x as f64 + 0.5 - k.cx()) / k.fx(),
-        (y as f64 + 0.5 - k.cy()) / k.fy(),
-        1.0,
-    )
+    Vector3::new((x as f64 - k.cx()) / k.fx(), (y as f64 - k.cy()) / k.fy(), 1.0)
 }
 
 /// z-depth where the ray of pixel (x, y) meets the plane through `p0` with normal `n`.
@@ -538,7 +534,8 @@ struct RotationMatch {
 /// (u right, v down): rotated(p) = base(R(-theta) (p - c) + c), nearest neighbour.
 fn compare_rotated(base: &DepthImage, rotated: &DepthImage, theta_rad: f64) -> RotationMatch {
     let n = base.width;
-    let c = n as f64 / 2.0;
+    // the principal point of `from_focal`: the middle of the pixel grid, pixel centres at integers
+    let c = (n as f64 - 1.0) / 2.0;
     let (s, co) = theta_rad.sin_cos();
     let mut m = RotationMatch {
         total: 0,
@@ -548,10 +545,10 @@ fn compare_rotated(base: &DepthImage, rotated: &DepthImage, theta_rad: f64) -> R
     };
     for y in 2..n - 2 {
         for x in 2..n - 2 {
-            let (du, dv) = (x as f64 + 0.5 - c, y as f64 + 0.5 - c);
+            let (du, dv) = (x as f64 - c, y as f64 - c);
             let su = co * du + s * dv + c;
             let sv = -s * du + co * dv + c;
-            let (sx, sy) = (su.floor() as i64, sv.floor() as i64);
+            let (sx, sy) = (pixel_index(su), pixel_index(sv));
             if sx < 0 || sy < 0 || sx >= n as i64 || sy >= n as i64 {
                 continue;
             }

@@ -27,7 +27,7 @@ use crate::dataset::{
 use crate::geometry::Pose;
 use crate::mesh::{self, Mesh, MeshError};
 use crate::render::{ClipRange, MeshHandle, RenderError, Renderer, SceneObject};
-use crate::tracker::{CameraFrame, CameraMount, RobotOdometry};
+use crate::sensor::{CameraFrame, CameraMount, RobotOdometry};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};

@@ -2,8 +2,8 @@
 //! computed from them and from the rendered instance mask.
 //!
 //! The silhouette of an object "rendered alone" is the union of its projected triangles, so no
-//! depth buffer is needed; pixels are sampled at their centres (`x + 0.5`, `y + 0.5`) like the
-//! GPU's rasteriser and [`crate::camera::Intrinsics::project`].
+//! depth buffer is needed; pixels are sampled at their centres (`(x, y)` in pixel coordinates,
+//! as BOP, OpenCV and [`crate::camera::Intrinsics::project`] have them) like the GPU's rasteriser.
 
 use crate::camera::Intrinsics;
 use crate::dataset::GtInfo;
@@ -41,27 +41,27 @@ pub fn silhouette(mesh: &Mesh, camera_from_object: &Pose, k: &Intrinsics) -> Vec
         let max_x = a[0].max(b[0]).max(c[0]);
         let min_y = a[1].min(b[1]).min(c[1]);
         let max_y = a[1].max(b[1]).max(c[1]);
-        if max_x < 0.0 || max_y < 0.0 || min_x >= w as f64 || min_y >= h as f64 {
+        if max_x < -0.5 || max_y < -0.5 || min_x >= w as f64 - 0.5 || min_y >= h as f64 - 0.5 {
             continue;
         }
-        // pixels whose centre x + 0.5 lies in [min_x, max_x]
-        let x0 = (min_x - 0.5).ceil().max(0.0) as usize;
-        let x1 = ((max_x - 0.5).floor() as i64).min(w as i64 - 1);
-        let y0 = (min_y - 0.5).ceil().max(0.0) as usize;
-        let y1 = ((max_y - 0.5).floor() as i64).min(h as i64 - 1);
+        // pixels whose centre (x, y) lies in [min_x, max_x] x [min_y, max_y]
+        let x0 = min_x.ceil().max(0.0) as usize;
+        let x1 = (max_x.floor() as i64).min(w as i64 - 1);
+        let y0 = min_y.ceil().max(0.0) as usize;
+        let y1 = (max_y.floor() as i64).min(h as i64 - 1);
         if x1 < x0 as i64 || y1 < y0 as i64 {
             continue;
         }
         let edge =
             |p: [f64; 2], q: [f64; 2], x: f64, y: f64| ((q[0] - p[0]) * (y - p[1]) - (q[1] - p[1]) * (x - p[0])) * s;
         for y in y0..=y1 as usize {
-            let py = y as f64 + 0.5;
+            let py = y as f64;
             let row = &mut mask[y * w..(y + 1) * w];
             for (x, m) in row.iter_mut().enumerate().take(x1 as usize + 1).skip(x0) {
                 if *m {
                     continue;
                 }
-                let px = x as f64 + 0.5;
+                let px = x as f64;
                 if edge(a, b, px, py) >= 0.0 && edge(b, c, px, py) >= 0.0 && edge(c, a, px, py) >= 0.0 {
                     *m = true;
                 }

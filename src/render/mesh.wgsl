@@ -5,11 +5,12 @@
 // and the instance id to write into the mask. A uniform (rather than a storage array indexed by
 // the instance index) lets a software rasteriser load it once per draw instead of per vertex.
 //
-// Projection: pixel (u, v) (u right, v down, pixel centres at integer + 0.5) of a point
-// (x, y, z) in the optical frame (x right, y down, z forward) is u = fx x / z + cx,
-// v = fy y / z + cy. The viewport of a view spans its `width` x `height` pixels, so
-// ndc_x = 2 u / width - 1 and (wgpu's NDC is y up) ndc_y = 1 - 2 v / height; multiplied by
-// w = z this is linear in the point. The z-buffer holds reversed depth
+// Projection: pixel coordinates (u, v) (u right, v down, the centre of pixel (x, y) at (x, y),
+// as BOP, OpenCV and ROS have them) of a point (x, y, z) in the optical frame (x right, y down,
+// z forward) are u = fx x / z + cx, v = fy y / z + cy. The rasteriser samples pixel x at
+// framebuffer coordinate x + 0.5, so framebuffer u_fb = u + 0.5; the viewport spans `width` x
+// `height` pixels, so ndc_x = 2 u_fb / width - 1 and (wgpu's NDC is y up)
+// ndc_y = 1 - 2 v_fb / height; multiplied by w = z this is linear in the point. The z-buffer holds reversed depth
 // d = near (far - z) / ((far - near) z) (1 at near, 0 at far, compare Greater; with f32 this
 // resolves about 1e-7 of the depth); it is read back and converted to metric z-depth on the
 // CPU, so depth-only renders need no fragment shader.
@@ -49,8 +50,9 @@ fn vs_main(v: VertexIn) -> VertexOut {
     let p = (d.camera_from_object * vec4<f32>(v.position_m, 1.0)).xyz;
     let fx = d.focal_principal.x;
     let fy = d.focal_principal.y;
-    let cx = d.focal_principal.z;
-    let cy = d.focal_principal.w;
+    // principal point in framebuffer coordinates (pixel centres at integer + 0.5 there)
+    let cx = d.focal_principal.z + 0.5;
+    let cy = d.focal_principal.w + 0.5;
     let width = d.size_clip.x;
     let height = d.size_clip.y;
     let near = d.size_clip.z;

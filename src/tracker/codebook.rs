@@ -314,7 +314,7 @@ impl Codebook {
         }
         let layout = config.layout();
         let d = layout.dim();
-        let centre = [config.render_px as f64 / 2.0, config.render_px as f64 / 2.0];
+        let centre = [k.cx(), k.cy()];
         let template = |v: usize, theta: f64, out: &mut [f32], mask: &mut [bool]| {
             let p = CropParams {
                 centre_px: centre,
@@ -463,8 +463,8 @@ fn corrupt(
     let jit = config.crop_jitter_rel.abs();
     let p = CropParams {
         centre_px: [
-            rp / 2.0 + rng.random_range(-jit..=jit) * rp,
-            rp / 2.0 + rng.random_range(-jit..=jit) * rp,
+            (rp - 1.0) / 2.0 + rng.random_range(-jit..=jit) * rp,
+            (rp - 1.0) / 2.0 + rng.random_range(-jit..=jit) * rp,
         ],
         side_px: rp * rng.random_range(0.9..1.1),
         rotation_rad: theta + rng.random_range(-0.5..0.5) * step_rad,

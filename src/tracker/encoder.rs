@@ -67,7 +67,7 @@
 //! on one sequence, full grid, building the codebook first: peak RSS 0.93 GB with 36,000
 //! crops streamed, 1.05 GB with 12,000 held in memory.
 
-use crate::camera::{ColorImage, DepthImage};
+use crate::camera::{ColorImage, DepthImage, pixel_index};
 use crate::tracker::TrackerError;
 use nalgebra::{DMatrix, DMatrixView, DMatrixViewMut};
 use rayon::prelude::*;
@@ -75,7 +75,7 @@ use serde::{Deserialize, Serialize};
 use std::ops::Range;
 
 /// Version of the feature layout and of the default encoder (part of every codebook cache key).
-pub const ENCODER_VERSION: u32 = 5;
+pub const ENCODER_VERSION: u32 = 6;
 
 /// Colour of far background in features (before `color_weight`).
 const BACKGROUND_GREY: f32 = 0.5;
@@ -161,7 +161,7 @@ pub fn sample_crop(
         // T_theta(q) = T_0(Rz(-theta) q)
         let x = p.centre_px[0] + c * qx + s * qy;
         let y = p.centre_px[1] - s * qx + c * qy;
-        let (xi, yi) = (x.floor() as i64, y.floor() as i64);
+        let (xi, yi) = (pixel_index(x), pixel_index(y));
         if xi < 0 || yi < 0 || xi >= w || yi >= h {
             None
         } else {

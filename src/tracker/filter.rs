@@ -510,7 +510,8 @@ impl Tracker {
         let inside = |s: &TrackState| -> bool {
             let m = s.set(&self.models[s.model].tables).mean_position();
             let p = view_from_ref * Point3::from(m);
-            match frame.intrinsics.project(&p) {
+            // the box's edges are at bx - 0.5 and bx + bw - 0.5 in pixel coordinates
+            match frame.intrinsics.project(&p).map(|[u, v]| [u + 0.5, v + 0.5]) {
                 Some([u, v]) => {
                     u >= bx - margin * bw
                         && u <= bx + bw * (1.0 + margin)
@@ -618,7 +619,8 @@ impl Tracker {
         };
         let diameter = self.models[mi].codebook.diameter_m;
         let [bx, by, bw, bh] = det.bbox_xywh_px;
-        let (cu, cv) = (bx + bw / 2.0, by + bh / 2.0);
+        // the box covers pixel columns bx .. bx + bw, so its centre is at bx + bw / 2 - 0.5
+        let (cu, cv) = (bx + bw / 2.0 - 0.5, by + bh / 2.0 - 0.5);
         let k = &frame.intrinsics;
         let mut depths: Vec<f32> = Vec::new();
         let (x0, x1) = (

@@ -53,9 +53,11 @@ pub mod motion;
 pub mod observation;
 pub mod raster;
 
-use crate::camera::{ColorImage, DepthImage, Intrinsics};
 use crate::geometry::Pose;
 use serde::{Deserialize, Serialize};
+
+/// The sensor types live in [`crate::sensor`] (below the tracker); these paths stay for callers.
+pub use crate::sensor::{CameraFrame, CameraMount, Detection, RobotOdometry};
 
 pub use codebook::{Codebook, CodebookConfig, ColorFeatures};
 pub use encoder::{Encoder, LinearDenoisingEncoder};
@@ -84,44 +86,6 @@ pub enum TrackerError {
         want_w: u32,
         want_h: u32,
     },
-}
-
-/// A 2-D detection of one object model in one image.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Detection {
-    /// Model name (as given to [`Tracker::add_object_model`]).
-    pub object: String,
-    /// `[x, y, width, height]` in pixels.
-    pub bbox_xywh_px: [f64; 4],
-    pub score: f64,
-}
-
-/// One camera's frame at one time.
-#[derive(Debug, Clone)]
-pub struct CameraFrame {
-    pub camera: String,
-    pub stamp_ns: i64,
-    pub intrinsics: Intrinsics,
-    pub depth: DepthImage,
-    pub color: Option<ColorImage>,
-    pub detections: Vec<Detection>,
-}
-
-/// How a camera is mounted.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub enum CameraMount {
-    Stationary { world_from_camera: Pose },
-    Robot { base_from_camera: Pose },
-}
-
-/// Odometry of the robot at one time (the robot camera's pose is
-/// `world_from_odom * odom_from_base * base_from_camera`).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct RobotOdometry {
-    pub stamp_ns: i64,
-    pub odom_from_base: Pose,
-    pub world_from_odom: Pose,
-    pub base_from_camera: Pose,
 }
 
 /// Status of a track.

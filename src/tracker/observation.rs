@@ -135,7 +135,7 @@ pub fn encode_particles(
                 return (x, m, false, 0.0);
             }
             let uv = [k.fx() * p.x / p.z + k.cx(), k.fy() * p.y / p.z + k.cy()];
-            if uv[0] < 0.0 || uv[1] < 0.0 || uv[0] >= k.width as f64 || uv[1] >= k.height as f64 {
+            if !k.contains(uv) {
                 return (x, m, false, 0.0);
             }
             let params = CropParams {

@@ -44,19 +44,20 @@ pub fn render(intrinsics: &Intrinsics, objects: &[(&Mesh, Pose)], near_m: f64, b
             if area.abs() < 1e-12 {
                 continue;
             }
-            let xmin = s.iter().map(|q| q[0]).fold(f64::INFINITY, f64::min).floor().max(0.0) as usize;
+            // pixels whose centre (at integer coordinates) the triangle's bounds can hold
+            let xmin = s.iter().map(|q| q[0]).fold(f64::INFINITY, f64::min).ceil().max(0.0) as usize;
             let xmax = s
                 .iter()
                 .map(|q| q[0])
                 .fold(f64::NEG_INFINITY, f64::max)
-                .ceil()
+                .floor()
                 .min(w as f64 - 1.0);
-            let ymin = s.iter().map(|q| q[1]).fold(f64::INFINITY, f64::min).floor().max(0.0) as usize;
+            let ymin = s.iter().map(|q| q[1]).fold(f64::INFINITY, f64::min).ceil().max(0.0) as usize;
             let ymax = s
                 .iter()
                 .map(|q| q[1])
                 .fold(f64::NEG_INFINITY, f64::max)
-                .ceil()
+                .floor()
                 .min(h as f64 - 1.0);
             if xmax < 0.0 || ymax < 0.0 {
                 continue;
@@ -69,9 +70,9 @@ pub fn render(intrinsics: &Intrinsics, objects: &[(&Mesh, Pose)], near_m: f64, b
                 mesh.colors[tri[2] as usize],
             ];
             for y in ymin..=ymax {
-                let py = y as f64 + 0.5;
+                let py = y as f64;
                 for x in xmin..=xmax {
-                    let px = x as f64 + 0.5;
+                    let px = x as f64;
                     let w0 = ((s[1][0] - px) * (s[2][1] - py) - (s[2][0] - px) * (s[1][1] - py)) / area;
                     let w1 = ((s[2][0] - px) * (s[0][1] - py) - (s[0][0] - px) * (s[2][1] - py)) / area;
                     let w2 = 1.0 - w0 - w1;
