@@ -2,8 +2,8 @@
 //!
 //! See `ARCHITECTURE.md` for the modules and the data flow
 //! (frame -> tracker -> decision -> API). Domain modules (`geometry`, `camera`, `mesh`,
-//! `render`, `sensor`, `dataset`, `generate`, `tracker`, `eval`, `grasp`) never import axum or utoipa;
-//! `api` converts.
+//! `render`, `sensor`, `dataset`, `generate`, `tracker`, `eval`, `grasp`, `symmetry`) never
+//! import axum or utoipa; `api` converts.
 
 pub mod api;
 pub mod camera;
@@ -15,4 +15,5 @@ pub mod grasp;
 pub mod mesh;
 pub mod render;
 pub mod sensor;
+pub mod symmetry;
 pub mod tracker;

@@ -31,6 +31,7 @@ fn config(mode: Mode, cache: &Path, decide: bool) -> EvalConfig {
             d
         }),
         only_target: false,
+        trust_samples: pregrasp::eval::run::DEFAULT_TRUST_SAMPLES,
     }
 }
 
@@ -121,6 +122,60 @@ fn eval_writes_results_and_multi_view_beats_a_blind_robot_camera() {
     assert!(ll.is_finite() && ll <= 0.0);
     let d = multi.decision.as_ref().expect("decision block");
     assert!((0.0..=1.0).contains(&d.grasp_rate) && d.ece >= 0.0 && d.ece <= 1.0);
+    // The decision scores of issue 17, and the reliability diagram beside them.
+    for k in [
+        "ece",
+        "brier",
+        "brier_base_rate",
+        "ece_by_object",
+        "ece_leave_one_object_out",
+        "recall",
+        "first_grasp",
+        "first_grasp_failure_upper_95",
+    ] {
+        assert!(
+            json["decision"].get(k).is_some(),
+            "decision.{k} missing: {}",
+            json["decision"]
+        );
+    }
+    assert!(d.brier >= 0.0 && d.brier <= 1.0 && d.brier_base_rate <= 0.25 + 1e-12);
+    assert_eq!(d.approaches, 1, "one sequence, one target");
+    assert_eq!(d.first_grasp.len(), 1);
+    assert!(d.first_grasp_failure_upper_95 > 0.0 && d.first_grasp_failure_upper_95 <= 1.0);
+    assert!(d.ece_by_object.contains_key("box"));
+    assert!(out_multi.join("reliability.png").is_file());
+    // The truth's place in the distribution, every frame with an estimate.
+    let trust = m.trust.as_ref().expect("trust measures");
+    assert_eq!(trust.frames, m.frames_with_estimate);
+    for v in [
+        trust.rotation.truth_in_50,
+        trust.rotation.truth_in_90,
+        trust.confidently_wrong,
+    ] {
+        assert!((0.0..=1.0).contains(&v), "{trust:?}");
+    }
+    assert!(trust.rotation.truth_in_50 <= trust.rotation.truth_in_90);
+    assert!(
+        trust.rotation.median_volume_90_so3_fraction > 0.0 && trust.rotation.median_volume_90_so3_fraction <= 1.0,
+        "{trust:?}"
+    );
+    let tr = trust.translation.as_ref().expect("translation mixture");
+    assert!(
+        tr.truth_in_50 <= tr.truth_in_90 && tr.median_volume_90_m3 > 0.0,
+        "{tr:?}"
+    );
+    for k in ["truth_in_50", "truth_in_90", "median_volume_90_so3_fraction"] {
+        assert!(json["objects"][0]["trust"]["rotation"].get(k).is_some(), "{k}");
+    }
+    assert!(json["mean"]["trust"]["confidently_wrong"].is_number());
+    // The box's exact symmetries (its turn about x) are a subset of its shape's (three
+    // turns): the error modulo the exact ones is never below the error modulo the shape's.
+    let (sym, shape) = (
+        m.symmetric_error_deg.expect("sym"),
+        m.shape_symmetric_error_deg.expect("shape sym"),
+    );
+    assert!(shape <= sym + 1e-9, "shape {shape} vs exact {sym}");
 
     // Single-view: the robot camera alone, blind until the last frames.
     let out_single = tmp.path().join("single");

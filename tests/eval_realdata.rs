@@ -48,6 +48,7 @@ fn evaluate_real_clip_with(codebook: CodebookConfig) -> SequenceOutcome {
         frame_stride: 1,
         decide: None,
         only_target: false,
+        trust_samples: pregrasp::eval::run::DEFAULT_TRUST_SAMPLES,
     };
     let mut store = ModelStore::default();
     evaluate_sequence(&seq, &renderer, &cfg, &mut store).expect("evaluate")

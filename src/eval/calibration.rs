@@ -1,35 +1,110 @@
-//! Calibration of the grasp decision against the outcome on the true pose: reliability per
-//! decile of predicted `p_success`, expected calibration error, grasp rate, false grasp rate
-//! (computed by `grasp::calibration`; this file collects the outcomes and shapes the block).
+//! Calibration of the grasp decision against the outcome on the true pose (`eval --decide`):
+//! reliability per decile of predicted `p_success`, expected calibration error (overall, per
+//! object, and leaving each object out), the Brier score beside the base-rate predictor's,
+//! the grasp rate and false grasp rate (`grasp::calibration` computes those); recall within
+//! reach; and per approach (one sequence's target) the first `grasp`: where it came and
+//! whether it fails on the truth, with a Wilson upper bound on the per-approach failure rate.
 
-use super::report::{DecisionBlock, ReliabilityBin};
-use crate::grasp::calibration::{CalibrationRecord, calibration_report};
+use super::report::{DecisionBlock, FirstGrasp, ReliabilityBin};
+use crate::grasp::calibration::{CalibrationRecord, calibration_report, wilson_upper_95};
+use std::collections::BTreeMap;
+
+/// Recall counts the frames where the robot camera is at most this far from the object (m):
+/// close enough that a grasp is worth answering.
+pub const RECALL_MAX_DISTANCE_M: f64 = 1.2;
 
 /// One decision at one frame and its outcome on the true pose.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct DecisionOutcome {
+    pub sequence: String,
+    pub object: String,
+    pub frame_id: u32,
     pub p_success: f64,
     /// The decision said `grasp`.
     pub grasp: bool,
     /// The planned grasp succeeds on the true pose.
     pub success: bool,
+    /// Distance from the robot camera (the reference camera in a rig without one) to the
+    /// object's true position (m); `None` where the truth does not say.
+    pub camera_distance_m: Option<f64>,
 }
 
-/// The `decision` block of `results.json` (the statistics are `grasp::calibration`'s);
-/// `None` without outcomes.
-pub fn summarise(outcomes: &[DecisionOutcome], threshold: f64) -> Option<DecisionBlock> {
-    if outcomes.is_empty() {
-        return None;
-    }
-    let records: Vec<CalibrationRecord> = outcomes
-        .iter()
+fn records<'a>(outcomes: impl Iterator<Item = &'a DecisionOutcome>) -> Vec<CalibrationRecord> {
+    outcomes
         .map(|o| CalibrationRecord {
             p_success: o.p_success,
             decided_grasp: o.grasp,
             succeeded: o.success,
         })
+        .collect()
+}
+
+/// Recall within reach: of the frames whose grasp succeeds on the true pose with the robot
+/// camera within [`RECALL_MAX_DISTANCE_M`], the share answered `grasp`; with that count.
+pub fn recall(outcomes: &[DecisionOutcome]) -> (Option<f64>, usize) {
+    let eligible: Vec<&DecisionOutcome> = outcomes
+        .iter()
+        .filter(|o| o.success && o.camera_distance_m.is_some_and(|d| d <= RECALL_MAX_DISTANCE_M))
         .collect();
-    let r = calibration_report(&records);
+    let n = eligible.len();
+    let answered = eligible.iter().filter(|o| o.grasp).count();
+    ((n > 0).then(|| answered as f64 / n as f64), n)
+}
+
+/// The first `grasp` of each approach (sequence and object, in the order given, which is the
+/// order of the steps); an approach that never got one is listed with no frame.
+pub fn first_grasps(outcomes: &[DecisionOutcome]) -> Vec<FirstGrasp> {
+    let mut by_approach: BTreeMap<(&str, &str), Option<&DecisionOutcome>> = BTreeMap::new();
+    for o in outcomes {
+        let slot = by_approach
+            .entry((o.sequence.as_str(), o.object.as_str()))
+            .or_insert(None);
+        if slot.is_none() && o.grasp {
+            *slot = Some(o);
+        }
+    }
+    by_approach
+        .into_iter()
+        .map(|((sequence, object), first)| FirstGrasp {
+            sequence: sequence.to_string(),
+            object: object.to_string(),
+            frame_id: first.map(|o| o.frame_id),
+            camera_distance_m: first.and_then(|o| o.camera_distance_m),
+            fails_on_truth: first.map(|o| !o.success),
+        })
+        .collect()
+}
+
+/// The `decision` block of `results.json`; `None` without outcomes.
+pub fn summarise(outcomes: &[DecisionOutcome], threshold: f64) -> Option<DecisionBlock> {
+    if outcomes.is_empty() {
+        return None;
+    }
+    let r = calibration_report(&records(outcomes.iter()));
+    let objects: std::collections::BTreeSet<&str> = outcomes.iter().map(|o| o.object.as_str()).collect();
+    let mut ece_by_object = BTreeMap::new();
+    let mut ece_leave_one_object_out = BTreeMap::new();
+    for obj in &objects {
+        ece_by_object.insert(
+            obj.to_string(),
+            calibration_report(&records(outcomes.iter().filter(|o| o.object == *obj))).ece,
+        );
+        let rest = records(outcomes.iter().filter(|o| o.object != *obj));
+        if !rest.is_empty() {
+            ece_leave_one_object_out.insert(obj.to_string(), calibration_report(&rest).ece);
+        }
+    }
+    let (recall, recall_frames) = recall(outcomes);
+    let first_grasp = first_grasps(outcomes);
+    let approaches = first_grasp.len();
+    let failures = first_grasp.iter().filter(|f| f.fails_on_truth == Some(true)).count();
+    let mut distances: Vec<f64> = first_grasp.iter().filter_map(|f| f.camera_distance_m).collect();
+    distances.sort_by(f64::total_cmp);
+    let median_first_grasp_distance_m = match distances.len() {
+        0 => None,
+        n if n % 2 == 1 => Some(distances[n / 2]),
+        n => Some(0.5 * (distances[n / 2 - 1] + distances[n / 2])),
+    };
     Some(DecisionBlock {
         ece: r.ece,
         false_grasp_rate: (r.n_grasp > 0).then_some(r.false_grasp_rate),
@@ -47,6 +122,25 @@ pub fn summarise(outcomes: &[DecisionOutcome], threshold: f64) -> Option<Decisio
         n_grasp: r.n_grasp,
         true_success_rate: outcomes.iter().filter(|o| o.success).count() as f64 / outcomes.len() as f64,
         threshold,
+        brier: r.brier,
+        brier_base_rate: r.brier_base_rate,
+        ece_by_object,
+        ece_leave_one_object_out,
+        recall,
+        recall_frames,
+        recall_max_distance_m: RECALL_MAX_DISTANCE_M,
+        approaches,
+        approaches_with_grasp: first_grasp.iter().filter(|f| f.frame_id.is_some()).count(),
+        first_grasp_failures: failures,
+        first_grasp_failure_rate: if approaches > 0 {
+            failures as f64 / approaches as f64
+        } else {
+            0.0
+        },
+        first_grasp_failure_upper_95: wilson_upper_95(failures, approaches),
+        median_first_grasp_distance_m,
+        first_grasp,
+        reliability_png: None,
     })
 }
 
@@ -55,52 +149,146 @@ mod tests {
     use super::*;
     use approx::assert_relative_eq;
 
+    fn out(seq: &str, obj: &str, frame: u32, p: f64, grasp: bool, success: bool, d: f64) -> DecisionOutcome {
+        DecisionOutcome {
+            sequence: seq.into(),
+            object: obj.into(),
+            frame_id: frame,
+            p_success: p,
+            grasp,
+            success,
+            camera_distance_m: Some(d),
+        }
+    }
+
+    fn simple(p: f64, grasp: bool, success: bool) -> DecisionOutcome {
+        out("s", "o", 0, p, grasp, success, 1.0)
+    }
+
     #[test]
     fn perfectly_calibrated_and_overconfident() {
         // p = 0.25 with 1 of 4 successes, p = 0.95 with 19 of 20: calibrated.
         let mut o = Vec::new();
         for i in 0..4 {
-            o.push(DecisionOutcome {
-                p_success: 0.25,
-                grasp: false,
-                success: i == 0,
-            });
+            o.push(simple(0.25, false, i == 0));
         }
         for i in 0..20 {
-            o.push(DecisionOutcome {
-                p_success: 0.95,
-                grasp: true,
-                success: i != 0,
-            });
+            o.push(simple(0.95, true, i != 0));
         }
         let b = summarise(&o, 0.9).expect("some");
         assert_relative_eq!(b.ece, 0.0, epsilon = 1e-12);
         assert_eq!(b.reliability.len(), 2);
         assert_relative_eq!(b.grasp_rate, 20.0 / 24.0, epsilon = 1e-12);
         assert_relative_eq!(b.false_grasp_rate.expect("grasps"), 0.05, epsilon = 1e-12);
+        // Brier: 4 x (0.25 or 0.75)^2 ... by hand: (0.5625 + 3 x 0.0625 + 19 x 0.0025 + 0.9025) / 24.
+        let brier = (0.5625 + 3.0 * 0.0625 + 19.0 * 0.0025 + 0.9025) / 24.0;
+        assert_relative_eq!(b.brier, brier, epsilon = 1e-12);
+        let base = 20.0 / 24.0;
+        assert_relative_eq!(b.brier_base_rate, base * (1.0 - base), epsilon = 1e-12);
+        assert!(b.brier < b.brier_base_rate);
 
         // Over-confident: says 0.95, succeeds half the time.
-        let o: Vec<_> = (0..10)
-            .map(|i| DecisionOutcome {
-                p_success: 0.95,
-                grasp: true,
-                success: i % 2 == 0,
-            })
-            .collect();
+        let o: Vec<_> = (0..10).map(|i| simple(0.95, true, i % 2 == 0)).collect();
         let b = summarise(&o, 0.9).expect("some");
         assert_relative_eq!(b.ece, 0.45, epsilon = 1e-12);
         assert_relative_eq!(b.false_grasp_rate.expect("grasps"), 0.5, epsilon = 1e-12);
+        assert!(b.brier > b.brier_base_rate, "worse than saying 0.5 every time");
         assert!(summarise(&[], 0.9).is_none());
-        let none = summarise(
-            &[DecisionOutcome {
-                p_success: 1.0,
-                grasp: false,
-                success: true,
-            }],
-            0.9,
-        )
-        .expect("some");
+        let none = summarise(&[simple(1.0, false, true)], 0.9).expect("some");
         assert_eq!(none.false_grasp_rate, None);
         assert_eq!(none.reliability[0].count, 1);
+    }
+
+    #[test]
+    fn ece_per_object_and_leaving_each_out() {
+        // can: calibrated (0.5, one of two succeeds); mug: says 0.9, always fails.
+        let o = vec![
+            out("s0", "can", 0, 0.5, false, true, 1.0),
+            out("s0", "can", 1, 0.5, false, false, 1.0),
+            out("s1", "mug", 0, 0.9, true, false, 1.0),
+            out("s1", "mug", 1, 0.9, true, false, 1.0),
+        ];
+        let b = summarise(&o, 0.9).expect("some");
+        assert_relative_eq!(b.ece_by_object["can"], 0.0, epsilon = 1e-12);
+        assert_relative_eq!(b.ece_by_object["mug"], 0.9, epsilon = 1e-12);
+        // Leaving the mug out leaves the calibrated can, and the other way round.
+        assert_relative_eq!(b.ece_leave_one_object_out["mug"], 0.0, epsilon = 1e-12);
+        assert_relative_eq!(b.ece_leave_one_object_out["can"], 0.9, epsilon = 1e-12);
+        assert_relative_eq!(b.ece, 0.45, epsilon = 1e-12);
+    }
+
+    #[test]
+    fn recall_counts_successful_frames_within_reach() {
+        let o = vec![
+            // within reach and would succeed: 2 of 4 answered grasp
+            out("s", "o", 0, 0.99, true, true, 0.5),
+            out("s", "o", 1, 0.7, false, true, 1.0),
+            out("s", "o", 2, 0.7, false, true, 1.2),
+            out("s", "o", 3, 0.99, true, true, 0.8),
+            // would fail: not in the denominator even when answered grasp
+            out("s", "o", 4, 0.99, true, false, 0.5),
+            // too far: not counted
+            out("s", "o", 5, 0.7, false, true, 1.5),
+            out("s", "o", 6, 0.99, true, true, 1.21),
+        ];
+        let (r, n) = recall(&o);
+        assert_eq!(n, 4);
+        assert_relative_eq!(r.expect("eligible"), 0.5, epsilon = 1e-12);
+        let mut unknown = o[0].clone();
+        unknown.camera_distance_m = None;
+        assert_eq!(recall(&[unknown]), (None, 0));
+    }
+
+    #[test]
+    fn first_grasp_per_approach_and_its_failure_bound() {
+        let o = vec![
+            // s0: first grasp at frame 2 (1.1 m), which fails on the truth; a later success
+            // does not change it.
+            out("s0", "can", 0, 0.3, false, true, 1.5),
+            out("s0", "can", 2, 0.97, true, false, 1.1),
+            out("s0", "can", 3, 0.99, true, true, 0.9),
+            // s1: first grasp at frame 1 (0.8 m), succeeds.
+            out("s1", "mug", 0, 0.2, false, false, 1.4),
+            out("s1", "mug", 1, 0.99, true, true, 0.8),
+            // s2: never grasps.
+            out("s2", "box", 0, 0.5, false, true, 1.0),
+        ];
+        let f = first_grasps(&o);
+        assert_eq!(f.len(), 3);
+        assert_eq!(
+            (f[0].frame_id, f[0].camera_distance_m, f[0].fails_on_truth),
+            (Some(2), Some(1.1), Some(true))
+        );
+        assert_eq!(
+            (f[1].frame_id, f[1].camera_distance_m, f[1].fails_on_truth),
+            (Some(1), Some(0.8), Some(false))
+        );
+        assert_eq!((f[2].frame_id, f[2].fails_on_truth), (None, None));
+        let b = summarise(&o, 0.9).expect("some");
+        assert_eq!(
+            (b.approaches, b.approaches_with_grasp, b.first_grasp_failures),
+            (3, 2, 1)
+        );
+        assert_relative_eq!(b.first_grasp_failure_rate, 1.0 / 3.0, epsilon = 1e-12);
+        assert_relative_eq!(
+            b.first_grasp_failure_upper_95,
+            crate::grasp::calibration::wilson_upper_95(1, 3),
+            epsilon = 1e-12
+        );
+        assert!(b.first_grasp_failure_upper_95 > 0.75, "1 of 3 bounds little");
+        assert_relative_eq!(b.median_first_grasp_distance_m.expect("two"), 0.95, epsilon = 1e-12);
+        let json = serde_json::to_value(&b).expect("json");
+        for k in [
+            "ece",
+            "brier",
+            "brier_base_rate",
+            "ece_by_object",
+            "ece_leave_one_object_out",
+            "recall",
+            "first_grasp",
+            "first_grasp_failure_upper_95",
+        ] {
+            assert!(json.get(k).is_some(), "{k}");
+        }
     }
 }

@@ -72,6 +72,10 @@ pub struct Args {
     /// Weight of the colour cosine in the similarity (0..1; the depth's is one minus it).
     #[arg(long, default_value_t = CodebookConfig::default().color_code_weight)]
     pub color_code_weight: f32,
+    /// Samples per frame for the truth's place in the distribution (highest-density regions,
+    /// `eval::trust`); 0 skips those measures.
+    #[arg(long, default_value_t = super::run::DEFAULT_TRUST_SAMPLES)]
+    pub trust_samples: usize,
     /// A JSON file of tracker settings that override the defaults, only the fields given, e.g.
     /// `{"observation": {"sigma": 0.08}, "blur_sigma_bins": 1.0}`.
     #[arg(long)]
@@ -154,6 +158,7 @@ impl Args {
             frame_stride: self.frame_stride,
             decide,
             only_target: self.only_target,
+            trust_samples: self.trust_samples,
         })
     }
 }

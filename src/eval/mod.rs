@@ -4,8 +4,10 @@
 //!
 //! Files: `metrics.rs` (per-frame errors, symmetries, ADD/ADD-S, AUC), `truth.rs` (ground
 //! truth in the reference frame, for scoring only), `report.rs` (`results.json` and the
-//! Markdown table beside the paper's), `plot.rs` (SVG plots over time), `calibration.rs`
-//! (reliability of the grasp decision), `run.rs` (the runner), `cli.rs` (`pregrasp eval`).
+//! Markdown table beside the paper's), `plot.rs` (SVG plots over time, the reliability
+//! diagram), `calibration.rs` (scores of the grasp decision), `trust.rs` (the truth's place
+//! in the tracked distribution: highest-density regions), `run.rs` (the runner), `cli.rs`
+//! (`pregrasp eval`). Symmetries (shape, and shape with colour) live in `crate::symmetry`.
 
 pub mod calibration;
 pub mod cli;
@@ -13,6 +15,7 @@ pub mod metrics;
 pub mod plot;
 pub mod report;
 pub mod run;
+pub mod trust;
 pub mod truth;
 
 /// Errors of the evaluation.

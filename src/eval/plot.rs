@@ -1,7 +1,8 @@
 //! Per-sequence plots of the four metrics of the paper's Fig. 5 over time, as hand-written SVG:
 //! translation error, orientation error, translation standard deviation and the
 //! log-likelihood of the true orientation, one line per tracked object (dashed: a second
-//! run, e.g. the single-view baseline beside the multi-view tracker).
+//! run, e.g. the single-view baseline beside the multi-view tracker). And the grasp
+//! decision's reliability diagram as a PNG ([`reliability_png`]).
 
 use super::report::{FrameErrors, ObjectTrace};
 use std::fmt::Write as _;
@@ -48,6 +49,88 @@ impl Series {
                 .collect(),
         }
     }
+}
+
+/// Side of the reliability diagram (pixels) and its margin.
+const RELIABILITY_SIZE_PX: u32 = 480;
+const RELIABILITY_MARGIN_PX: u32 = 40;
+
+/// Draws the reliability diagram: x the predicted `p_success` (0 to 1 left to right), y the
+/// share that succeeded on the true pose (0 to 1 bottom to top), grid lines every 0.1, the
+/// diagonal of perfect calibration in grey; per non-empty decile a blue bar up to the
+/// observed share centred at the mean prediction, a red line from it to the diagonal (the
+/// gap the ECE weighs) and a black dot whose area grows with the decile's count.
+pub fn reliability_image(bins: &[super::report::ReliabilityBin]) -> image::RgbImage {
+    use image::Rgb;
+    let (size, m) = (RELIABILITY_SIZE_PX, RELIABILITY_MARGIN_PX);
+    let span = (size - 2 * m) as f64;
+    let mut c = Canvas(image::RgbImage::from_pixel(size, size, Rgb([255, 255, 255])));
+    let px = |v: f64| m as f64 + v.clamp(0.0, 1.0) * span;
+    let py = |v: f64| (size - m) as f64 - v.clamp(0.0, 1.0) * span;
+    for k in 0..=10 {
+        let v = k as f64 / 10.0;
+        let colour = if k == 0 || k == 10 {
+            Rgb([0, 0, 0])
+        } else {
+            Rgb([225, 225, 225])
+        };
+        c.line((px(v), py(0.0)), (px(v), py(1.0)), colour);
+        c.line((px(0.0), py(v)), (px(1.0), py(v)), colour);
+    }
+    c.line((px(0.0), py(0.0)), (px(1.0), py(1.0)), Rgb([150, 150, 150]));
+    let total: usize = bins.iter().map(|b| b.count).sum::<usize>().max(1);
+    for b in bins {
+        let half = 0.04;
+        let (x0, x1) = (px(b.predicted - half), px(b.predicted + half));
+        let mut y = py(b.observed);
+        while y <= py(0.0) {
+            c.line((x0, y), (x1, y), Rgb([120, 160, 220]));
+            y += 1.0;
+        }
+        c.line(
+            (px(b.predicted), py(b.observed)),
+            (px(b.predicted), py(b.predicted)),
+            Rgb([210, 30, 30]),
+        );
+        let r = 3.0 + 12.0 * (b.count as f64 / total as f64).sqrt();
+        let (cx, cy) = (px(b.predicted), py(b.observed));
+        let ri = r.ceil() as i64;
+        for dy in -ri..=ri {
+            for dx in -ri..=ri {
+                if ((dx * dx + dy * dy) as f64) <= r * r {
+                    c.put(cx + dx as f64, cy + dy as f64, Rgb([0, 0, 0]));
+                }
+            }
+        }
+    }
+    c.0
+}
+
+/// An image drawn on with clipped pixels and lines.
+struct Canvas(image::RgbImage);
+
+impl Canvas {
+    fn put(&mut self, x: f64, y: f64, colour: image::Rgb<u8>) {
+        let (x, y) = (x.round(), y.round());
+        if x >= 0.0 && y >= 0.0 && (x as u32) < self.0.width() && (y as u32) < self.0.height() {
+            self.0.put_pixel(x as u32, y as u32, colour);
+        }
+    }
+
+    fn line(&mut self, a: (f64, f64), b: (f64, f64), colour: image::Rgb<u8>) {
+        let steps = ((b.0 - a.0).abs().max((b.1 - a.1).abs()).ceil() as usize).max(1);
+        for k in 0..=steps {
+            let t = k as f64 / steps as f64;
+            self.put(a.0 + (b.0 - a.0) * t, a.1 + (b.1 - a.1) * t, colour);
+        }
+    }
+}
+
+/// Writes [`reliability_image`] as a PNG.
+pub fn reliability_png(bins: &[super::report::ReliabilityBin], path: &std::path::Path) -> Result<(), super::EvalError> {
+    reliability_image(bins)
+        .save_with_format(path, image::ImageFormat::Png)
+        .map_err(|e| super::EvalError::Io(format!("{}: {e}", path.display())))
 }
 
 const COLORS: [&str; 8] = [
@@ -203,7 +286,46 @@ fn tick(v: f64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::eval::report::FrameMetrics;
+    use crate::eval::report::{FrameMetrics, ReliabilityBin};
+
+    #[test]
+    fn reliability_diagram_draws_bars_gaps_and_dots() {
+        let bins = [
+            ReliabilityBin {
+                predicted: 0.25,
+                observed: 0.25,
+                count: 4,
+            },
+            ReliabilityBin {
+                predicted: 0.95,
+                observed: 0.5,
+                count: 20,
+            },
+        ];
+        let img = reliability_image(&bins);
+        let (m, span) = (
+            RELIABILITY_MARGIN_PX as f64,
+            (RELIABILITY_SIZE_PX - 2 * RELIABILITY_MARGIN_PX) as f64,
+        );
+        let at = |x: f64, y: f64| {
+            *img.get_pixel(
+                (m + x * span).round() as u32,
+                (RELIABILITY_SIZE_PX as f64 - m - y * span).round() as u32,
+            )
+        };
+        // The over-confident decile: a red gap between its observed 0.5 and the diagonal.
+        assert_eq!(at(0.95, 0.7).0, [210, 30, 30]);
+        // Its bar is blue below the dot, and the dot is black.
+        assert_eq!(at(0.93, 0.2).0, [120, 160, 220]);
+        assert_eq!(at(0.95, 0.5).0, [0, 0, 0]);
+        // Nothing drawn above a calibrated decile's dot, up to the grid.
+        assert_eq!(at(0.27, 0.65).0, [255, 255, 255]);
+        let dir = tempfile::tempdir().expect("tmp");
+        let p = dir.path().join("r.png");
+        reliability_png(&bins, &p).expect("png");
+        let back = image::open(&p).expect("read png").to_rgb8();
+        assert_eq!(back.dimensions(), (RELIABILITY_SIZE_PX, RELIABILITY_SIZE_PX));
+    }
 
     #[test]
     fn svg_has_four_panels_a_line_per_series_and_gaps() {
@@ -218,6 +340,8 @@ mod tests {
             add_m: t,
             add_s_m: t,
             rotation_entropy: 0.0,
+            shape_symmetric_error_deg: None,
+            truth_place: None,
         };
         let trace = ObjectTrace {
             sequence: "s".into(),

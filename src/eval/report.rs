@@ -39,6 +39,147 @@ pub struct FrameErrors {
     pub add_m: f64,
     pub add_s_m: f64,
     pub rotation_entropy: f64,
+    /// Symmetry-aware angle under the shape's symmetries alone (colour ignored: what a depth
+    /// camera cannot tell apart); `symmetric_error_deg` uses the exact ones (shape and colour).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shape_symmetric_error_deg: Option<f64>,
+    /// The truth's place in the tracked distribution (`eval::trust`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub truth_place: Option<TruthPlace>,
+}
+
+/// The truth's place in the tracked distribution at one frame (`eval::trust`): the
+/// probabilities that it lies in the 50 % and 90 % highest-density regions (ties broken at
+/// random) and the 90 % region's volume.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TruthPlace {
+    /// ln of the rotation marginal's density at the truth relative to the uniform
+    /// distribution on SO(3), averaged over the exact symmetries; below 0: the truth is less
+    /// likely than under a uniform distribution (confidently wrong).
+    pub rotation_log_density: f64,
+    pub rotation_truth_in_50: f64,
+    pub rotation_truth_in_90: f64,
+    /// Volume of the rotation's 90 % region as a fraction of SO(3) (uniform: 0.9).
+    pub rotation_volume_90_so3_fraction: f64,
+    /// The same test on the translation mixture (one Gaussian per camera component).
+    pub translation_truth_in_50: Option<f64>,
+    pub translation_truth_in_90: Option<f64>,
+    pub translation_volume_90_m3: Option<f64>,
+}
+
+/// The rotation part of a [`TrustRow`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RotationTrust {
+    /// Mean over frames of the probability that the truth lies in the 50 % region.
+    pub truth_in_50: f64,
+    pub truth_in_90: f64,
+    /// Median over frames of the 90 % region's volume, as a fraction of SO(3).
+    pub median_volume_90_so3_fraction: f64,
+    /// The same in steradian-radians (SO(3) is 8 pi^2 sr rad).
+    pub median_volume_90_sr_rad: f64,
+    /// Median over frames of ln(density at the truth / uniform's).
+    pub median_log_density: f64,
+}
+
+/// The translation part of a [`TrustRow`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TranslationTrust {
+    pub truth_in_50: f64,
+    pub truth_in_90: f64,
+    /// Median over frames of the 90 % region's volume (m^3).
+    pub median_volume_90_m3: f64,
+}
+
+/// How far the distribution can be trusted, over the frames with an estimate.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrustRow {
+    /// Frames scored (with an estimate).
+    pub frames: usize,
+    pub rotation: RotationTrust,
+    pub translation: Option<TranslationTrust>,
+    /// Share of the scored frames whose truth is less likely under the tracked rotation than
+    /// under a uniform one (log density below 0).
+    pub confidently_wrong: f64,
+}
+
+fn median(mut v: Vec<f64>) -> Option<f64> {
+    v.retain(|x| x.is_finite());
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let m = v.len() / 2;
+    Some(if v.len().is_multiple_of(2) {
+        0.5 * (v[m - 1] + v[m])
+    } else {
+        v[m]
+    })
+}
+
+impl TrustRow {
+    /// Over the frames' places; `None` without any.
+    pub fn from_places(places: &[&TruthPlace]) -> Option<Self> {
+        if places.is_empty() {
+            return None;
+        }
+        let n = places.len() as f64;
+        let vol = median(places.iter().map(|p| p.rotation_volume_90_so3_fraction).collect())?;
+        let translation: Vec<(f64, f64, f64)> = places
+            .iter()
+            .filter_map(|p| {
+                Some((
+                    p.translation_truth_in_50?,
+                    p.translation_truth_in_90?,
+                    p.translation_volume_90_m3?,
+                ))
+            })
+            .collect();
+        let tn = translation.len() as f64;
+        Some(Self {
+            frames: places.len(),
+            rotation: RotationTrust {
+                truth_in_50: places.iter().map(|p| p.rotation_truth_in_50).sum::<f64>() / n,
+                truth_in_90: places.iter().map(|p| p.rotation_truth_in_90).sum::<f64>() / n,
+                median_volume_90_so3_fraction: vol,
+                median_volume_90_sr_rad: vol * super::trust::SO3_VOLUME_SR_RAD,
+                median_log_density: median(places.iter().map(|p| p.rotation_log_density).collect())?,
+            },
+            translation: (!translation.is_empty()).then(|| TranslationTrust {
+                truth_in_50: translation.iter().map(|t| t.0).sum::<f64>() / tn,
+                truth_in_90: translation.iter().map(|t| t.1).sum::<f64>() / tn,
+                median_volume_90_m3: median(translation.iter().map(|t| t.2).collect()).unwrap_or(f64::NAN),
+            }),
+            confidently_wrong: places.iter().filter(|p| p.rotation_log_density < 0.0).count() as f64 / n,
+        })
+    }
+
+    /// The unweighted mean of rows (medians are averaged too); `None` without rows.
+    pub fn mean_of(rows: &[&TrustRow]) -> Option<Self> {
+        if rows.is_empty() {
+            return None;
+        }
+        let n = rows.len() as f64;
+        let m = |f: &dyn Fn(&TrustRow) -> f64| rows.iter().map(|r| f(r)).sum::<f64>() / n;
+        let t: Vec<&TranslationTrust> = rows.iter().filter_map(|r| r.translation.as_ref()).collect();
+        let tn = t.len() as f64;
+        let tm = |f: &dyn Fn(&TranslationTrust) -> f64| t.iter().map(|r| f(r)).sum::<f64>() / tn;
+        Some(Self {
+            frames: rows.iter().map(|r| r.frames).sum(),
+            rotation: RotationTrust {
+                truth_in_50: m(&|r| r.rotation.truth_in_50),
+                truth_in_90: m(&|r| r.rotation.truth_in_90),
+                median_volume_90_so3_fraction: m(&|r| r.rotation.median_volume_90_so3_fraction),
+                median_volume_90_sr_rad: m(&|r| r.rotation.median_volume_90_sr_rad),
+                median_log_density: m(&|r| r.rotation.median_log_density),
+            },
+            translation: (!t.is_empty()).then(|| TranslationTrust {
+                truth_in_50: tm(&|r| r.truth_in_50),
+                truth_in_90: tm(&|r| r.truth_in_90),
+                median_volume_90_m3: tm(&|r| r.median_volume_90_m3),
+            }),
+            confidently_wrong: m(&|r| r.confidently_wrong),
+        })
+    }
 }
 
 /// One object at one time step of a sequence.
@@ -72,6 +213,9 @@ pub struct MetricRow {
     pub orientation_error_deg: Option<f64>,
     pub geodesic_error_deg: Option<f64>,
     pub symmetric_error_deg: Option<f64>,
+    /// Under the shape's symmetries alone (colour ignored).
+    #[serde(default)]
+    pub shape_symmetric_error_deg: Option<f64>,
     pub translation_std_m: Option<f64>,
     pub gt_orientation_loglik: Option<f64>,
     pub add_m: Option<f64>,
@@ -84,6 +228,10 @@ pub struct MetricRow {
     pub add_s_auc_all_frames: Option<f64>,
     /// Share of frames with an estimate.
     pub coverage: Option<f64>,
+    /// The truth's place in the distribution (`truth_in_50`, `truth_in_90`, the 90 % region
+    /// volumes, `confidently_wrong`), over the frames with an estimate.
+    #[serde(default)]
+    pub trust: Option<TrustRow>,
 }
 
 fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
@@ -115,6 +263,7 @@ impl MetricRow {
             orientation_error_deg: m(|e| e.orientation_error_deg),
             geodesic_error_deg: m(|e| e.geodesic_error_deg),
             symmetric_error_deg: m(|e| e.symmetric_error_deg),
+            shape_symmetric_error_deg: mean(with.iter().filter_map(|e| e.shape_symmetric_error_deg)),
             translation_std_m: m(|e| e.translation_std_m),
             gt_orientation_loglik: mean(with.iter().filter_map(|e| e.gt_orientation_loglik)),
             add_m: m(|e| e.add_m),
@@ -123,6 +272,7 @@ impl MetricRow {
             add_s_auc: auc(&add_s, AUC_MAX_THRESHOLD_M),
             add_s_auc_all_frames: auc(&add_s_all, AUC_MAX_THRESHOLD_M),
             coverage: (!frames.is_empty()).then(|| with.len() as f64 / frames.len() as f64),
+            trust: TrustRow::from_places(&with.iter().filter_map(|e| e.truth_place.as_ref()).collect::<Vec<_>>()),
         }
     }
 
@@ -139,6 +289,7 @@ impl MetricRow {
             orientation_error_deg: m(|r| r.orientation_error_deg),
             geodesic_error_deg: m(|r| r.geodesic_error_deg),
             symmetric_error_deg: m(|r| r.symmetric_error_deg),
+            shape_symmetric_error_deg: m(|r| r.shape_symmetric_error_deg),
             translation_std_m: m(|r| r.translation_std_m),
             gt_orientation_loglik: m(|r| r.gt_orientation_loglik),
             add_m: m(|r| r.add_m),
@@ -147,6 +298,7 @@ impl MetricRow {
             add_s_auc: m(|r| r.add_s_auc),
             add_s_auc_all_frames: m(|r| r.add_s_auc_all_frames),
             coverage: m(|r| r.coverage),
+            trust: TrustRow::mean_of(&rows.iter().filter_map(|r| r.trust.as_ref()).collect::<Vec<_>>()),
         }
     }
 }
@@ -173,6 +325,62 @@ pub struct DecisionBlock {
     /// Share of those frames whose grasp succeeds on the true pose.
     pub true_success_rate: f64,
     pub threshold: f64,
+    /// Brier score of `p_success` against the outcome on the true pose.
+    #[serde(default)]
+    pub brier: f64,
+    /// Brier score of the base-rate predictor (the share of successes at every frame).
+    #[serde(default)]
+    pub brier_base_rate: f64,
+    #[serde(default)]
+    pub ece_by_object: BTreeMap<String, f64>,
+    /// ECE over the frames of the other objects, per object left out.
+    #[serde(default)]
+    pub ece_leave_one_object_out: BTreeMap<String, f64>,
+    /// Of the frames whose grasp succeeds on the true pose with the robot camera within
+    /// `recall_max_distance_m`, the share answered `grasp` (`None`: no such frame).
+    #[serde(default)]
+    pub recall: Option<f64>,
+    /// Those frames.
+    #[serde(default)]
+    pub recall_frames: usize,
+    #[serde(default)]
+    pub recall_max_distance_m: f64,
+    /// Approaches (a sequence's target) with a decision.
+    #[serde(default)]
+    pub approaches: usize,
+    /// Of which ever answered `grasp`.
+    #[serde(default)]
+    pub approaches_with_grasp: usize,
+    /// Approaches whose first `grasp` fails on the true pose.
+    #[serde(default)]
+    pub first_grasp_failures: usize,
+    /// `first_grasp_failures / approaches`.
+    #[serde(default)]
+    pub first_grasp_failure_rate: f64,
+    /// 95 % Wilson upper bound on the per-approach failure rate.
+    #[serde(default)]
+    pub first_grasp_failure_upper_95: f64,
+    #[serde(default)]
+    pub median_first_grasp_distance_m: Option<f64>,
+    /// Per approach: the first `grasp`.
+    #[serde(default)]
+    pub first_grasp: Vec<FirstGrasp>,
+    /// The reliability diagram beside `results.json`.
+    #[serde(default)]
+    pub reliability_png: Option<String>,
+}
+
+/// The first `grasp` of one approach (sequence and object).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FirstGrasp {
+    pub sequence: String,
+    pub object: String,
+    /// `None`: the approach never got `grasp`.
+    pub frame_id: Option<u32>,
+    /// Robot camera to the object's true position at that frame (m).
+    pub camera_distance_m: Option<f64>,
+    /// The planned grasp fails on the true pose.
+    pub fails_on_truth: Option<bool>,
 }
 
 /// Per sequence: what was run.
@@ -273,6 +481,41 @@ impl Results {
                 fmt(r.coverage, 3),
             );
         }
+        if self.objects.iter().any(|r| r.trust.is_some()) {
+            let _ = writeln!(
+                s,
+                "\n## The truth's place in the distribution\n\nOver the frames with an estimate: the share \
+                 of frames whose truth lies in the 50 % / 90 % highest-density region (ties broken at random: \
+                 a uniform distribution scores 0.5 / 0.9), the median volume of the 90 % region (rotation: \
+                 fraction of SO(3), uniform 0.9; translation: cm^3), and the share of frames whose true \
+                 rotation is less likely than under a uniform distribution (confidently wrong). Rotations \
+                 modulo the exact (shape and colour) symmetries.\n"
+            );
+            let _ = writeln!(
+                s,
+                "| object | frames | rot. in 50 | rot. in 90 | rot. vol. 90 (SO(3)) | transl. in 50 | transl. in 90 | transl. vol. 90 (cm^3) | confidently wrong | sym. (deg) | shape sym. (deg) |"
+            );
+            let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|");
+            for r in self.objects.iter().chain(std::iter::once(&self.mean)) {
+                let Some(t) = &r.trust else { continue };
+                let tr = t.translation.as_ref();
+                let _ = writeln!(
+                    s,
+                    "| {} | {} | {:.3} | {:.3} | {:.2e} | {} | {} | {} | {:.3} | {} | {} |",
+                    r.name,
+                    t.frames,
+                    t.rotation.truth_in_50,
+                    t.rotation.truth_in_90,
+                    t.rotation.median_volume_90_so3_fraction,
+                    fmt(tr.map(|x| x.truth_in_50), 3),
+                    fmt(tr.map(|x| x.truth_in_90), 3),
+                    fmt(tr.map(|x| x.median_volume_90_m3 * 1e6), 2),
+                    t.confidently_wrong,
+                    fmt(r.symmetric_error_deg, 2),
+                    fmt(r.shape_symmetric_error_deg, 2),
+                );
+            }
+        }
         if !self.others.is_empty() {
             let _ = writeln!(s, "\nOther tracked objects (not the sequence's target):\n");
             let _ = writeln!(
@@ -310,6 +553,34 @@ impl Results {
                 d.ece,
                 d.true_success_rate
             );
+            let _ = writeln!(
+                s,
+                "Brier {:.4} (base rate {:.4}); recall {} of {} frames that would succeed within {:.1} m; \
+                 approaches {}, with a grasp {}, first grasp fails in {} (rate {:.3}, 95 % Wilson upper bound \
+                 {:.3}); median distance of the first grasp {} m\n",
+                d.brier,
+                d.brier_base_rate,
+                fmt(d.recall, 3),
+                d.recall_frames,
+                d.recall_max_distance_m,
+                d.approaches,
+                d.approaches_with_grasp,
+                d.first_grasp_failures,
+                d.first_grasp_failure_rate,
+                d.first_grasp_failure_upper_95,
+                fmt(d.median_first_grasp_distance_m, 2),
+            );
+            if !d.ece_by_object.is_empty() {
+                let _ = writeln!(s, "| object | ECE | ECE leaving it out |\n|---|---|---|");
+                for (o, e) in &d.ece_by_object {
+                    let _ = writeln!(
+                        s,
+                        "| {o} | {e:.4} | {} |",
+                        fmt(d.ece_leave_one_object_out.get(o).copied(), 4)
+                    );
+                }
+                let _ = writeln!(s);
+            }
             let _ = writeln!(s, "| predicted | observed | count |\n|---|---|---|");
             for b in &d.reliability {
                 let _ = writeln!(s, "| {:.3} | {:.3} | {} |", b.predicted, b.observed, b.count);
@@ -403,6 +674,8 @@ mod tests {
             add_m: t,
             add_s_m: t,
             rotation_entropy: 1.0,
+            shape_symmetric_error_deg: None,
+            truth_place: None,
         }
     }
 

@@ -24,6 +24,20 @@ pub fn reference_from_world(seq: &Sequence, frame: u32) -> Option<Pose> {
         .camera_from_world
 }
 
+/// Distance (m) from the robot camera (the reference camera in a rig without one) to a point
+/// given in the reference frame at `frame`: through the robot camera's and the reference
+/// camera's true poses when they differ; `None` where those are not known.
+pub fn camera_distance_m(seq: &Sequence, frame: u32, reference_from_object: &Pose) -> Option<f64> {
+    let robot = seq.rig.robot_camera().unwrap_or(seq.rig.reference_camera.as_str());
+    let point = reference_from_object.translation.vector;
+    if robot == seq.rig.reference_camera {
+        return Some(point.norm());
+    }
+    let robot_from_world = seq.cameras.get(robot)?.frames.get(&frame)?.camera_from_world?;
+    let robot_from_reference = robot_from_world * reference_from_world(seq, frame)?.inverse();
+    Some((robot_from_reference * nalgebra::Point3::from(point)).coords.norm())
+}
+
 /// True poses of every object at a frame in the reference camera's frame: from the reference
 /// camera's `scene_gt.json` when it has the frame, else from another camera's ground truth
 /// moved through the world frame (that camera's calibration and the reference camera's true
@@ -116,5 +130,8 @@ mod tests {
         let t = objs[0].reference_from_object.translation.vector;
         assert!((t.z - 0.6222).abs() < 1e-3 && (t.x - 0.0627).abs() < 1e-3, "{t:?}");
         assert!(objects_in_reference(&seq, 999).is_empty());
+        // One camera: the distance is the object's from it.
+        let d = camera_distance_m(&seq, 1, &objs[0].reference_from_object).expect("distance");
+        assert!((d - t.norm()).abs() < 1e-12 && d > 0.6, "{d}");
     }
 }

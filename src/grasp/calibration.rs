@@ -1,5 +1,7 @@
 //! Is the predicted p_success honest? Predicted vs observed success (on the ground-truth pose)
-//! per decile, the expected calibration error, the grasp rate and the false grasp rate.
+//! per decile, the expected calibration error, the Brier score beside the base-rate
+//! predictor's, the grasp rate and the false grasp rate; and the Wilson upper bound that a
+//! failure rate over few approaches is quoted with.
 
 use super::decision::{Decision, Verdict};
 use serde::{Deserialize, Serialize};
@@ -42,6 +44,14 @@ pub struct ReliabilityBin {
 pub struct CalibrationReport {
     /// Expected calibration error: sum over bins of count/n * |predicted - observed|.
     pub ece: f64,
+    /// Brier score: mean of `(p_success - succeeded)^2` (0 is perfect; 0.25 is a constant
+    /// 0.5).
+    #[serde(default)]
+    pub brier: f64,
+    /// Brier score of the base-rate predictor, which says the share of successes at every
+    /// frame: `b (1 - b)`. A useful `p_success` scores below it.
+    #[serde(default)]
+    pub brier_base_rate: f64,
     /// Share of `grasp` answers whose grasp fails on the ground truth (0 when there are none).
     pub false_grasp_rate: f64,
     /// Share of decisions answered `grasp`.
@@ -85,10 +95,13 @@ pub fn calibration_report(records: &[CalibrationRecord]) -> CalibrationReport {
             .map(|b| b.count as f64 / n as f64 * (b.predicted - b.observed).abs())
             .sum()
     };
+    let (brier, brier_base_rate) = brier_scores(records);
     let n_grasp = records.iter().filter(|r| r.decided_grasp).count();
     let false_grasps = records.iter().filter(|r| r.decided_grasp && !r.succeeded).count();
     CalibrationReport {
         ece,
+        brier,
+        brier_base_rate,
         false_grasp_rate: if n_grasp == 0 {
             0.0
         } else {
@@ -99,6 +112,36 @@ pub fn calibration_report(records: &[CalibrationRecord]) -> CalibrationReport {
         n_decisions: n,
         n_grasp,
     }
+}
+
+/// The predicted p clamped to [0, 1] (a non-finite one counts as 0), as the bins read it.
+fn clamped(p: f64) -> f64 {
+    if p.is_finite() { p.clamp(0.0, 1.0) } else { 0.0 }
+}
+
+/// (Brier score, base-rate predictor's Brier score) of a set of records; zeros when empty.
+pub fn brier_scores(records: &[CalibrationRecord]) -> (f64, f64) {
+    if records.is_empty() {
+        return (0.0, 0.0);
+    }
+    let n = records.len() as f64;
+    let y = |r: &CalibrationRecord| if r.succeeded { 1.0 } else { 0.0 };
+    let brier = records
+        .iter()
+        .map(|r| (clamped(r.p_success) - y(r)).powi(2))
+        .sum::<f64>()
+        / n;
+    let base = records.iter().map(y).sum::<f64>() / n;
+    (brier, base * (1.0 - base))
+}
+
+/// The 95 % Wilson upper bound on a rate of `failures` in `n` trials (1 when `n` is 0): what
+/// a failure rate over few approaches may really be.
+pub fn wilson_upper_95(failures: usize, n: usize) -> f64 {
+    if n == 0 {
+        return 1.0;
+    }
+    super::decision::wilson_interval(failures as f64 / n as f64, n as f64)[1]
 }
 
 #[cfg(test)]
@@ -150,10 +193,59 @@ mod tests {
     }
 
     #[test]
+    fn brier_against_the_base_rate() {
+        // Half succeed. A perfect predictor scores 0, the base rate 0.25, a constant 0.5
+        // 0.25 too, a predictor that says the opposite 1.
+        let perfect = [rec(1.0, true, true), rec(0.0, false, false)];
+        assert_eq!(brier_scores(&perfect), (0.0, 0.25));
+        let constant = [rec(0.5, false, true), rec(0.5, false, false)];
+        assert_eq!(brier_scores(&constant), (0.25, 0.25));
+        let opposite = [rec(0.0, false, true), rec(1.0, true, false)];
+        assert_eq!(brier_scores(&opposite), (1.0, 0.25));
+        // 3 of 4 succeed, predicted 0.9 each: Brier (3 * 0.01 + 0.81) / 4, base 0.1875.
+        let r = [
+            rec(0.9, true, true),
+            rec(0.9, true, true),
+            rec(0.9, true, true),
+            rec(0.9, true, false),
+        ];
+        let (b, base) = brier_scores(&r);
+        assert!((b - 0.21).abs() < 1e-12 && (base - 0.1875).abs() < 1e-12, "{b} {base}");
+        let c = calibration_report(&r);
+        assert!((c.brier - 0.21).abs() < 1e-12 && (c.brier_base_rate - 0.1875).abs() < 1e-12);
+        assert_eq!(brier_scores(&[]), (0.0, 0.0));
+    }
+
+    #[test]
+    fn wilson_upper_bounds_of_few_approaches() {
+        // 0 of 64: z^2 / (n + z^2) = 0.0566; 2 of 64: 0.1070 (Wilson's formula by hand).
+        assert!(
+            (wilson_upper_95(0, 64) - 0.056_62).abs() < 1e-4,
+            "{}",
+            wilson_upper_95(0, 64)
+        );
+        assert!(
+            (wilson_upper_95(2, 64) - 0.106_97).abs() < 1e-4,
+            "{}",
+            wilson_upper_95(2, 64)
+        );
+        assert!(wilson_upper_95(2, 64) > 2.0 / 64.0);
+        assert_eq!(wilson_upper_95(0, 0), 1.0);
+        assert!((wilson_upper_95(10, 10) - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
     fn report_serialises_with_the_agreed_keys() {
         let c = calibration_report(&[rec(0.5, false, true)]);
         let v = serde_json::to_value(&c).unwrap();
-        for k in ["ece", "false_grasp_rate", "grasp_rate", "reliability"] {
+        for k in [
+            "ece",
+            "brier",
+            "brier_base_rate",
+            "false_grasp_rate",
+            "grasp_rate",
+            "reliability",
+        ] {
             assert!(v.get(k).is_some(), "{k}");
         }
         let b = &v["reliability"][0];

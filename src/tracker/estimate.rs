@@ -164,6 +164,58 @@ impl ParticleSet<'_> {
         mass.max(1e-300).ln()
     }
 
+    /// Density of the rotation marginal at each of `rotations` (`reference_from_object`),
+    /// relative to the uniform distribution on SO(3): `sum_p w_p h_p(b_p) / v(b_p)`, where
+    /// each particle reads its own allocentric bin `b_p` (as [`Self::orientation_loglik`])
+    /// and `v` is the bin's share of SO(3). Averaged over `orbit` (object-frame rotations
+    /// that look the same: `R * s` for each `s`); an empty orbit means the identity alone.
+    /// Read-only: the evaluation's highest-density test (`eval::trust`).
+    pub fn rotation_densities(&self, rotations: &[UnitQuaternion<f64>], orbit: &[UnitQuaternion<f64>]) -> Vec<f64> {
+        use rayon::prelude::*;
+        let n = self.n();
+        let grid = self.tables.grid;
+        let per_elevation = grid.n_azimuth() * grid.n_inplane();
+        let wsum: f64 = self.weights.iter().sum();
+        let hist_from_reference = self.reference_from_hist.rotation.inverse();
+        // Per particle: allocentric-in-H from reference, `ray(t_h)^-1 * H_from_reference`.
+        let allo_from_reference: Vec<UnitQuaternion<f64>> = self
+            .positions_m
+            .iter()
+            .map(|p| {
+                let t_h = self
+                    .reference_from_hist
+                    .inverse_transform_point(&Point3::from(*p))
+                    .coords;
+                ray_rotation(&t_h).inverse() * hist_from_reference
+            })
+            .collect();
+        let identity = [UnitQuaternion::identity()];
+        let orbit = if orbit.is_empty() { &identity[..] } else { orbit };
+        rotations
+            .par_iter()
+            .with_min_len(16)
+            .map(|r| {
+                let mut total = 0.0;
+                for s in orbit {
+                    let rs = r * s;
+                    for (p, (w, allo)) in self.weights.iter().zip(&allo_from_reference).enumerate() {
+                        if *w <= 0.0 {
+                            continue;
+                        }
+                        let b = grid.flat_of(&(allo * rs));
+                        let volume = self.tables.elevation_volume[b / per_elevation];
+                        total += w * self.hist[b * n + p] as f64 / volume;
+                    }
+                }
+                if wsum > 0.0 {
+                    total / (wsum * orbit.len() as f64)
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    }
+
     /// `n` poses: a particle by weight, a bin from its histogram, a rotation uniform inside the
     /// bin (elevation clamped to [0, pi]), egocentric through the particle's ray.
     pub fn sample_poses(&self, count: usize, rng: &mut impl Rng) -> PoseSamples {

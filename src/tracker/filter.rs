@@ -327,6 +327,22 @@ impl Tracker {
         )
     }
 
+    /// Read-only: the rotation marginal's density at each of `rotations`, relative to uniform
+    /// and averaged over `orbit` (see `ParticleSet::rotation_densities`).
+    pub fn rotation_densities(
+        &self,
+        track_id: u64,
+        rotations: &[UnitQuaternion<f64>],
+        orbit: &[UnitQuaternion<f64>],
+    ) -> Option<Vec<f64>> {
+        let i = self.index_of(track_id)?;
+        let s = &self.states[i];
+        if s.n() == 0 {
+            return None;
+        }
+        Some(s.set(&self.models[s.model].tables).rotation_densities(rotations, orbit))
+    }
+
     pub fn particles(&self, track_id: u64) -> Option<Vec<ParticleView>> {
         let i = self.index_of(track_id)?;
         let s = &self.states[i];

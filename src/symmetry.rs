@@ -1,0 +1,474 @@
+//! Symmetries of an object: the rotations `s` (object frame) under which `pose * s` shows the
+//! same object as `pose`.
+//!
+//! Two kinds, measured on the mesh by turning it by 90 and 180 degrees about each axis (and
+//! 30 and 45 degrees for a continuous axis):
+//! - *shape* symmetries ([`Symmetries::from_mesh`], [`Symmetries::for_ycb`]): the surfaces
+//!   coincide within [`NEAR_SYMMETRY_THRESHOLD_M`]; what a depth camera cannot tell apart;
+//! - *exact* symmetries ([`Symmetries::exact`]): the surfaces coincide *and* so do their
+//!   colours (at most [`COLOR_MISMATCH_SHARE`] of the surface changes colour by more than
+//!   [`COLOR_MISMATCH_DISTANCE`]). An exact symmetry is never an error; a turn that only the
+//!   colour tells apart (the built-in box's 180-degree turns about y and z, whose +x face has
+//!   a second colour) always is.
+//!
+//! The evaluation scores with the exact symmetries; the service can show errors modulo them
+//! ([`Symmetries::closest_truth`]).
+
+use crate::geometry::Pose;
+use crate::mesh::Mesh;
+use nalgebra::{Point3, Unit, UnitQuaternion, Vector3};
+use rand::SeedableRng;
+use serde::{Deserialize, Serialize};
+
+/// Mean surface distance (m) under which a rotated copy of a shape counts as the same shape
+/// to a depth camera (`shared/ycb/README.md`, "Near-symmetries").
+pub const NEAR_SYMMETRY_THRESHOLD_M: f64 = 0.004;
+
+/// Distance between two colours (Euclidean in RGB scaled to 0..1, at most sqrt 3) above which
+/// a surface point counts as changed in colour: well above the shading baked into a scan's
+/// texture, well below the contrast of a label or a painted face.
+pub const COLOR_MISMATCH_DISTANCE: f64 = 0.2;
+
+/// Share of the surface that may change colour under an exact symmetry: sampled points on an
+/// edge between two faces, and a texture's seams.
+pub const COLOR_MISMATCH_SHARE: f64 = 0.02;
+
+/// Surface points sampled to measure symmetries.
+const SURFACE_SAMPLES: usize = 2000;
+
+/// The symmetries of an object, in the object frame: `truth * s` for every `s` looks like
+/// `truth`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Symmetries {
+    /// A finite group of rotations (the identity included).
+    pub discrete: Vec<UnitQuaternion<f64>>,
+    /// An axis (object frame) about which any rotation is a symmetry, combined with the
+    /// discrete ones.
+    pub continuous_axis: Option<Unit<Vector3<f64>>>,
+}
+
+/// Mean surface distances (mm) between each YCB mesh and its copy rotated by
+/// x90, x180, y90, y180, z90, z180, and whether it is continuous about z: the table of
+/// `shared/ycb/README.md` (geometry only).
+const YCB_NEAR_SYMMETRY_MM: [(&str, [f64; 6], bool); 8] = [
+    ("002_master_chef_can", [15.4, 1.5, 15.4, 1.5, 1.4, 1.4], true),
+    ("003_cracker_box", [11.3, 2.6, 37.0, 3.7, 25.4, 3.6], false),
+    ("004_sugar_box", [16.8, 3.0, 32.5, 2.4, 14.0, 2.9], false),
+    ("006_mustard_bottle", [29.9, 11.5, 21.5, 11.5, 9.4, 1.5], false),
+    ("011_banana", [35.4, 14.3, 22.3, 32.6, 37.6, 28.5], false),
+    ("021_bleach_cleanser", [45.6, 9.9, 34.5, 10.9, 10.2, 5.2], false),
+    ("025_mug", [7.2, 5.4, 10.1, 10.0, 7.1, 8.2], false),
+    ("035_power_drill", [51.5, 10.7, 22.3, 10.7, 22.7, 15.4], false),
+];
+
+/// Names of the YCB meshes with a row in the README's table.
+pub fn ycb_names() -> impl Iterator<Item = &'static str> {
+    YCB_NEAR_SYMMETRY_MM.iter().map(|(n, _, _)| *n)
+}
+
+/// The candidate rotations of the table, in its column order.
+fn candidate(k: usize) -> UnitQuaternion<f64> {
+    let axis = match k / 2 {
+        0 => Vector3::x_axis(),
+        1 => Vector3::y_axis(),
+        _ => Vector3::z_axis(),
+    };
+    let angle = if k.is_multiple_of(2) {
+        std::f64::consts::FRAC_PI_2
+    } else {
+        std::f64::consts::PI
+    };
+    UnitQuaternion::from_axis_angle(&axis, angle)
+}
+
+/// How far a rotated copy of a mesh is from the mesh, in shape and in colour.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SurfaceMismatch {
+    /// Mean distance of the rotated surface samples to the surface, both ways (m).
+    pub mean_distance_m: f64,
+    /// Share of the samples whose colour differs from the surface's colour where they land
+    /// by more than [`COLOR_MISMATCH_DISTANCE`], both ways.
+    pub color_mismatch_share: f64,
+}
+
+/// A mesh's surface with its vertex colours and fixed surface samples, for [`SurfaceMismatch`].
+struct ColoredSurface {
+    surface: parry3d::shape::TriMesh,
+    triangles: Vec<[u32; 3]>,
+    vertex_colors: Vec<[f64; 3]>,
+    points_m: Vec<Point3<f64>>,
+    point_colors: Vec<[f64; 3]>,
+}
+
+impl ColoredSurface {
+    /// `None` for a mesh parry3d rejects (no triangles).
+    fn new(mesh: &Mesh, n: usize) -> Option<Self> {
+        let vertices = mesh
+            .vertices_m
+            .iter()
+            .map(|v| parry3d::math::Vector::new(v[0], v[1], v[2]))
+            .collect();
+        let surface = parry3d::shape::TriMesh::new(vertices, mesh.triangles.clone()).ok()?;
+        let vertex_colors: Vec<[f64; 3]> = (0..mesh.vertices_m.len())
+            .map(|i| {
+                let c = mesh.colors.get(i).copied().unwrap_or([128, 128, 128]);
+                [c[0] as f64 / 255.0, c[1] as f64 / 255.0, c[2] as f64 / 255.0]
+            })
+            .collect();
+        // The same samples (seed 11) as the ADD model points of `eval::metrics`.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let points_m = mesh.sample_surface(n, &mut rng);
+        let mut s = Self {
+            surface,
+            triangles: mesh.triangles.clone(),
+            vertex_colors,
+            points_m,
+            point_colors: Vec::new(),
+        };
+        s.point_colors = s.points_m.iter().map(|p| s.nearest(p).1).collect();
+        Some(s)
+    }
+
+    /// Distance from `p` to the surface and the colour of the surface's nearest point.
+    fn nearest(&self, p: &Point3<f64>) -> (f64, [f64; 3]) {
+        use parry3d::query::PointQueryWithLocation;
+        let v = parry3d::math::Vector::new(p.x as f32, p.y as f32, p.z as f32);
+        let (proj, (tri, location)) = self.surface.project_local_point_and_get_location(v, false);
+        let d = ((proj.point.x as f64 - p.x).powi(2)
+            + (proj.point.y as f64 - p.y).powi(2)
+            + (proj.point.z as f64 - p.z).powi(2))
+        .sqrt();
+        let bary = location.barycentric_coordinates().unwrap_or([1.0, 0.0, 0.0]);
+        let t = self.triangles.get(tri as usize).copied().unwrap_or([0, 0, 0]);
+        let mut c = [0.0; 3];
+        for (k, b) in bary.iter().enumerate() {
+            let vc = self.vertex_colors.get(t[k] as usize).copied().unwrap_or([0.5; 3]);
+            for ch in 0..3 {
+                c[ch] += *b as f64 * vc[ch];
+            }
+        }
+        (d, c)
+    }
+
+    /// One way: the samples moved by `surface_from_points`, against the surface.
+    fn one_way(&self, surface_from_points: &UnitQuaternion<f64>) -> (f64, f64) {
+        if self.points_m.is_empty() {
+            return (0.0, 0.0);
+        }
+        let (mut dist, mut changed) = (0.0, 0usize);
+        for (p, c) in self.points_m.iter().zip(&self.point_colors) {
+            let (d, c2) = self.nearest(&(surface_from_points * p));
+            dist += d;
+            let dc = ((c[0] - c2[0]).powi(2) + (c[1] - c2[1]).powi(2) + (c[2] - c2[2]).powi(2)).sqrt();
+            changed += (dc > COLOR_MISMATCH_DISTANCE) as usize;
+        }
+        let n = self.points_m.len() as f64;
+        (dist / n, changed as f64 / n)
+    }
+
+    fn mismatch(&self, rotation: &UnitQuaternion<f64>) -> SurfaceMismatch {
+        let (d1, c1) = self.one_way(rotation);
+        let (d2, c2) = self.one_way(&rotation.inverse());
+        SurfaceMismatch {
+            mean_distance_m: 0.5 * (d1 + d2),
+            color_mismatch_share: 0.5 * (c1 + c2),
+        }
+    }
+}
+
+/// How far `mesh` turned by `rotation` (object frame) is from itself; `None` for a mesh
+/// parry3d rejects.
+pub fn surface_mismatch(mesh: &Mesh, rotation: &UnitQuaternion<f64>) -> Option<SurfaceMismatch> {
+    Some(ColoredSurface::new(mesh, SURFACE_SAMPLES)?.mismatch(rotation))
+}
+
+impl Symmetries {
+    /// No symmetry: the identity only.
+    pub fn none() -> Self {
+        Self {
+            discrete: vec![UnitQuaternion::identity()],
+            continuous_axis: None,
+        }
+    }
+
+    /// The group generated by `generators` (closed under composition), with an optional
+    /// continuous axis.
+    pub fn generated_by(generators: &[UnitQuaternion<f64>], continuous_axis: Option<Unit<Vector3<f64>>>) -> Self {
+        let mut group = vec![UnitQuaternion::identity()];
+        let mut frontier = group.clone();
+        while let Some(g) = frontier.pop() {
+            for h in generators {
+                let c = g * h;
+                if !group.iter().any(|e| e.angle_to(&c) < 1e-6) {
+                    group.push(c);
+                    frontier.push(c);
+                }
+            }
+            if group.len() > 64 {
+                break; // a finite rotation group of the candidates has at most 24 elements
+            }
+        }
+        Self {
+            discrete: group,
+            continuous_axis,
+        }
+    }
+
+    /// The shape near-symmetries of one of the 8 YCB meshes by name (README table, threshold
+    /// [`NEAR_SYMMETRY_THRESHOLD_M`], colour ignored); `None` for an unknown name.
+    pub fn for_ycb(name: &str) -> Option<Self> {
+        let (_, mm, continuous_z) = YCB_NEAR_SYMMETRY_MM.iter().find(|(n, _, _)| *n == name)?;
+        let generators: Vec<_> = (0..6)
+            .filter(|&k| mm[k] / 1000.0 < NEAR_SYMMETRY_THRESHOLD_M)
+            .map(candidate)
+            .collect();
+        Some(Self::generated_by(&generators, continuous_z.then(Vector3::z_axis)))
+    }
+
+    /// Shape symmetries measured from the mesh (colour ignored): rotations by 90 and 180
+    /// degrees about each axis under which the mean distance of rotated surface samples to
+    /// the surface (both ways) is under `threshold_m`; an axis that is symmetric at 30, 45, 90
+    /// and 180 degrees is taken as continuous. A mesh parry3d rejects has no symmetry.
+    pub fn from_mesh(mesh: &Mesh, threshold_m: f64) -> Self {
+        Self::measured(mesh, |m| m.mean_distance_m < threshold_m)
+    }
+
+    /// Exact symmetries, shape and colour together: the turns of [`Self::from_mesh`] (at
+    /// [`NEAR_SYMMETRY_THRESHOLD_M`]) that also leave at most [`COLOR_MISMATCH_SHARE`] of the
+    /// surface changed in colour. A mesh without colours has its shape symmetries.
+    pub fn exact(mesh: &Mesh) -> Self {
+        Self::measured(mesh, |m| {
+            m.mean_distance_m < NEAR_SYMMETRY_THRESHOLD_M && m.color_mismatch_share <= COLOR_MISMATCH_SHARE
+        })
+    }
+
+    fn measured(mesh: &Mesh, is_symmetry: impl Fn(&SurfaceMismatch) -> bool) -> Self {
+        let Some(surface) = ColoredSurface::new(mesh, SURFACE_SAMPLES) else {
+            return Self::none();
+        };
+        let is_sym = |q: &UnitQuaternion<f64>| is_symmetry(&surface.mismatch(q));
+        let generators: Vec<_> = (0..6).map(candidate).filter(|q| is_sym(q)).collect();
+        let continuous_axis = [Vector3::x_axis(), Vector3::y_axis(), Vector3::z_axis()]
+            .into_iter()
+            .find(|axis| {
+                [30.0f64, 45.0, 90.0, 180.0]
+                    .iter()
+                    .all(|deg| is_sym(&UnitQuaternion::from_axis_angle(axis, deg.to_radians())))
+            });
+        Self::generated_by(&generators, continuous_axis)
+    }
+
+    /// Shape symmetries: [`Self::for_ycb`] for a known YCB name, else [`Self::from_mesh`].
+    pub fn for_object(name: &str, mesh: &Mesh) -> Self {
+        Self::for_ycb(name).unwrap_or_else(|| Self::from_mesh(mesh, NEAR_SYMMETRY_THRESHOLD_M))
+    }
+
+    /// True when the group is the identity alone.
+    pub fn is_trivial(&self) -> bool {
+        self.continuous_axis.is_none() && self.discrete.len() <= 1
+    }
+
+    /// Symmetry-aware geodesic error (degrees): the smallest angle between the estimate and
+    /// any pose that looks like the truth. With a continuous axis `a`, the angle between the
+    /// estimated and the true directions of `a` (over the discrete copies of the truth).
+    pub fn error_deg(&self, estimate: &UnitQuaternion<f64>, truth: &UnitQuaternion<f64>) -> f64 {
+        self.discrete
+            .iter()
+            .map(|s| {
+                let t = truth * s;
+                match self.continuous_axis {
+                    None => estimate.angle_to(&t),
+                    Some(a) => {
+                        let ea = estimate * a.into_inner();
+                        let ta = t * a.into_inner();
+                        ea.angle(&ta)
+                    }
+                }
+            })
+            .fold(f64::INFINITY, f64::min)
+            .to_degrees()
+    }
+
+    /// The copy of `truth` (a pose that looks the same) closest to `estimate`: what a display
+    /// compares the estimate with to show errors modulo the symmetries.
+    pub fn closest_truth(&self, estimate: &UnitQuaternion<f64>, truth: &UnitQuaternion<f64>) -> UnitQuaternion<f64> {
+        let mut best = (f64::INFINITY, *truth);
+        for s in &self.discrete {
+            let mut t = truth * s;
+            if let Some(a) = self.continuous_axis {
+                // The turn about `a` that brings the copy nearest the estimate: the twist of
+                // `t^-1 * estimate` about `a` (swing-twist decomposition).
+                let d = t.inverse() * estimate;
+                let q = d.quaternion();
+                let axis = a.into_inner();
+                let proj = Vector3::new(q.i, q.j, q.k).dot(&axis);
+                let angle = 2.0 * proj.atan2(q.w);
+                t *= UnitQuaternion::from_axis_angle(&a, angle);
+            }
+            let e = estimate.angle_to(&t);
+            if e < best.0 {
+                best = (e, t);
+            }
+        }
+        best.1
+    }
+
+    /// The orbit of the identity, for averaging a density over poses that look alike: the
+    /// discrete group, each element times `continuous_steps` evenly spaced turns about the
+    /// continuous axis (one turn when there is none).
+    pub fn orbit(&self, continuous_steps: usize) -> Vec<UnitQuaternion<f64>> {
+        let turns: Vec<UnitQuaternion<f64>> = match self.continuous_axis {
+            None => vec![UnitQuaternion::identity()],
+            Some(a) => {
+                let k = continuous_steps.max(1);
+                (0..k)
+                    .map(|i| UnitQuaternion::from_axis_angle(&a, i as f64 / k as f64 * std::f64::consts::TAU))
+                    .collect()
+            }
+        };
+        self.discrete
+            .iter()
+            .flat_map(|s| turns.iter().map(move |t| s * t))
+            .collect()
+    }
+
+    /// `true` when `rotation` (object frame) is one of the symmetries, within `tol_rad`.
+    pub fn contains(&self, rotation: &UnitQuaternion<f64>, tol_rad: f64) -> bool {
+        self.error_deg(rotation, &UnitQuaternion::identity()).to_radians() <= tol_rad
+    }
+}
+
+/// The pose of the truth's copy nearest to the estimate's rotation, as a full pose.
+pub fn closest_truth_pose(symmetries: &Symmetries, estimate: &Pose, truth: &Pose) -> Pose {
+    Pose::from_parts(
+        truth.translation,
+        symmetries.closest_truth(&estimate.rotation, &truth.rotation),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use approx::assert_relative_eq;
+    use std::f64::consts::{FRAC_PI_2, PI};
+
+    fn shared_dir() -> std::path::PathBuf {
+        std::env::var_os("PREGRASP_SHARED")
+            .map(std::path::PathBuf::from)
+            .unwrap_or_else(|| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"))
+    }
+
+    fn rot(axis: Unit<Vector3<f64>>, angle: f64) -> UnitQuaternion<f64> {
+        UnitQuaternion::from_axis_angle(&axis, angle)
+    }
+
+    #[test]
+    fn the_box_keeps_its_x_turn_and_loses_the_turns_its_colour_tells_apart() {
+        let mesh = crate::mesh::builtin("box").expect("builtin");
+        let shape = Symmetries::from_mesh(&mesh, NEAR_SYMMETRY_THRESHOLD_M);
+        assert_eq!(shape.discrete.len(), 4, "three 180 degree turns by shape");
+        let exact = Symmetries::exact(&mesh);
+        assert_eq!(exact.discrete.len(), 2, "{:?}", exact.discrete);
+        assert!(exact.continuous_axis.is_none());
+        let x180 = rot(Vector3::x_axis(), PI);
+        let y180 = rot(Vector3::y_axis(), PI);
+        let z180 = rot(Vector3::z_axis(), PI);
+        assert!(exact.contains(&x180, 1e-6));
+        assert!(!exact.contains(&y180, 1e-6) && !exact.contains(&z180, 1e-6));
+        // Never an error: the exact turn; always one: the turns only the colour tells apart.
+        let truth = UnitQuaternion::from_euler_angles(0.3, -0.2, 1.1);
+        assert!(exact.error_deg(&(truth * x180), &truth) < 1e-6);
+        assert_relative_eq!(exact.error_deg(&(truth * y180), &truth), 180.0, epsilon = 1e-6);
+        assert_relative_eq!(exact.error_deg(&(truth * z180), &truth), 180.0, epsilon = 1e-6);
+        // The shape symmetries would have forgiven them.
+        assert!(shape.error_deg(&(truth * z180), &truth) < 1e-6);
+        // The measured colour change says why.
+        let m = surface_mismatch(&mesh, &y180).expect("mesh");
+        assert!(m.mean_distance_m < 1e-4 && m.color_mismatch_share > 0.15, "{m:?}");
+        let m = surface_mismatch(&mesh, &x180).expect("mesh");
+        assert!(m.mean_distance_m < 1e-4 && m.color_mismatch_share < 0.005, "{m:?}");
+    }
+
+    #[test]
+    fn the_can_s_stripe_breaks_its_spin_but_not_its_turn_about_x() {
+        let mesh = crate::mesh::builtin("can").expect("builtin");
+        let shape = Symmetries::from_mesh(&mesh, NEAR_SYMMETRY_THRESHOLD_M);
+        assert!(shape.continuous_axis.is_some());
+        let exact = Symmetries::exact(&mesh);
+        assert!(exact.continuous_axis.is_none(), "the +x stripe breaks the spin");
+        assert!(exact.contains(&rot(Vector3::x_axis(), PI), 1e-6), "{exact:?}");
+        assert!(!exact.contains(&rot(Vector3::z_axis(), FRAC_PI_2), 1e-6));
+        assert_eq!(exact.discrete.len(), 2);
+    }
+
+    #[test]
+    fn a_grey_box_has_its_shape_symmetries() {
+        let mut mesh = crate::mesh::builtin("box").expect("builtin");
+        for c in &mut mesh.colors {
+            *c = [120, 120, 120];
+        }
+        assert_eq!(Symmetries::exact(&mesh).discrete.len(), 4);
+    }
+
+    #[test]
+    fn closest_truth_and_orbit() {
+        let mesh = crate::mesh::builtin("box").expect("builtin");
+        let exact = Symmetries::exact(&mesh);
+        let truth = UnitQuaternion::from_euler_angles(0.1, 0.2, 0.3);
+        let x180 = rot(Vector3::x_axis(), PI);
+        let est = truth * x180 * rot(Vector3::z_axis(), 0.1);
+        let c = exact.closest_truth(&est, &truth);
+        assert!(c.angle_to(&(truth * x180)) < 1e-9);
+        assert_relative_eq!(c.angle_to(&est), 0.1, epsilon = 1e-9);
+        assert_eq!(exact.orbit(36).len(), 2);
+        // A continuous axis: the twist is taken out exactly.
+        let can = Symmetries::generated_by(&[], Some(Vector3::z_axis()));
+        let est = truth * rot(Vector3::z_axis(), 1.3) * rot(Vector3::x_axis(), 0.05);
+        let c = can.closest_truth(&est, &truth);
+        assert_relative_eq!(c.angle_to(&est), 0.05, epsilon = 1e-9);
+        assert_relative_eq!(can.error_deg(&est, &truth), 0.05f64.to_degrees(), epsilon = 1e-6);
+        assert_eq!(can.orbit(36).len(), 36);
+    }
+
+    /// Every YCB texture tells its shape's turns apart: no exact symmetry is left (the
+    /// measured colour changes are in `docs/decisions.md`).
+    #[test]
+    fn ycb_exact_symmetries_are_a_subset_of_the_shape_ones() {
+        for name in ycb_names() {
+            let mesh = Mesh::load(&shared_dir().join(format!("ycb/{name}.ply"))).expect("ycb mesh");
+            let shape = Symmetries::for_ycb(name).expect("known");
+            let exact = Symmetries::exact(&mesh);
+            for s in &exact.discrete {
+                assert!(shape.contains(s, 1e-6), "{name}: {s:?} exact but not by shape");
+            }
+            assert!(
+                exact.continuous_axis.is_none() || shape.continuous_axis.is_some(),
+                "{name}"
+            );
+            assert!(exact.is_trivial(), "{name}: {exact:?}");
+        }
+    }
+
+    /// The shape symmetries measured from each YCB mesh agree with the README's table.
+    #[test]
+    fn measured_symmetries_agree_with_the_readme_table() {
+        let mut disagreements = Vec::new();
+        for name in ycb_names() {
+            let mesh = Mesh::load(&shared_dir().join(format!("ycb/{name}.ply"))).expect("ycb mesh");
+            let table = Symmetries::for_ycb(name).expect("known");
+            let measured = Symmetries::from_mesh(&mesh, NEAR_SYMMETRY_THRESHOLD_M);
+            if table.discrete.len() != measured.discrete.len()
+                || table.continuous_axis.is_some() != measured.continuous_axis.is_some()
+            {
+                disagreements.push(format!(
+                    "{name}: table {} {:?}, measured {} {:?}",
+                    table.discrete.len(),
+                    table.continuous_axis,
+                    measured.discrete.len(),
+                    measured.continuous_axis
+                ));
+            }
+        }
+        assert!(disagreements.is_empty(), "{disagreements:#?}");
+    }
+}
