@@ -96,7 +96,7 @@ const plots = {
   rotation: new TimePlot(el("plot-rotation"), { title: "Rotation uncertainty", yLabel: "[nats] / [–]", yMin: 0 }),
   pSuccess: new TimePlot(el("plot-psuccess"), { title: "Grasp success probability", yLabel: "p_success [–]", yMin: 0, yMax: 1 }),
   tErr: new TimePlot(el("plot-terr"), { title: "Translation error vs ground truth", yLabel: "error [m]", yMin: 0 }),
-  rErr: new TimePlot(el("plot-rerr"), { title: "Orientation error vs ground truth", yLabel: "error [deg]", yMin: 0 }),
+  rErr: new TimePlot(el("plot-rerr"), { title: "Orientation error vs ground truth (modulo symmetry)", yLabel: "error [deg]", yMin: 0 }),
 };
 
 function setConnection(status, text) {

@@ -58,6 +58,8 @@ pub struct ParticleDto {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct TruthDto {
     pub translation_error_m: f64,
+    /// Geodesic angle to the nearest pose that looks like the truth: modulo the object's exact
+    /// symmetries (shape and colour together).
     pub orientation_error_deg: f64,
 }
 

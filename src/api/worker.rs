@@ -98,6 +98,9 @@ pub struct Engine {
     pending: Vec<crate::tracker::TrackSnapshot>,
     /// The ingest epoch the tracker was built in (the odometry's clock restarted after it).
     epoch: u64,
+    /// Per object its exact symmetries (shape and colour) with the mesh hash they were measured
+    /// on: ground-truth errors are shown modulo them. Measured on first use.
+    symmetries: BTreeMap<String, (String, crate::symmetry::Symmetries)>,
 }
 
 impl Engine {
@@ -151,6 +154,7 @@ impl Engine {
             rng: rand_chacha::ChaCha8Rng::seed_from_u64(state.config.tracker.seed ^ 0x5eed),
             pending,
             epoch: state.ingest().epoch(),
+            symmetries: BTreeMap::new(),
         })
     }
 
@@ -190,6 +194,25 @@ impl Engine {
             }
             self.models.insert(id, key);
         }
+    }
+
+    /// The exact symmetries of an object's model (measured once per mesh); none when the
+    /// tracker has no model of that name.
+    fn symmetries_of(&mut self, object: &str) -> crate::symmetry::Symmetries {
+        let Some((hash, ..)) = self.models.get(object) else {
+            return crate::symmetry::Symmetries::none();
+        };
+        if let Some((h, s)) = self.symmetries.get(object)
+            && h == hash
+        {
+            return s.clone();
+        }
+        let s = self
+            .tracker
+            .model_mesh(object)
+            .map_or_else(crate::symmetry::Symmetries::none, crate::symmetry::Symmetries::exact);
+        self.symmetries.insert(object.to_string(), (hash.clone(), s.clone()));
+        s
     }
 }
 
@@ -385,9 +408,13 @@ pub(super) fn views(
                     .collect()
             })
             .unwrap_or_default();
+        // the orientation error modulo the object's exact symmetries: a turn that changes
+        // neither shape nor colour is no error, one the colour tells apart always is
         let truth = truth.get(&t.object).map(|(_, w)| TruthDto {
             translation_error_m: (w.translation.vector - world_from_object.translation.vector).norm(),
-            orientation_error_deg: w.rotation.angle_to(&world_from_object.rotation).to_degrees(),
+            orientation_error_deg: engine
+                .symmetries_of(&t.object)
+                .error_deg(&world_from_object.rotation, &w.rotation),
         });
         let decision = state.tracking.board().views.get(&t.id).and_then(|v| v.decision.clone());
         out.push(TrackView {

@@ -445,6 +445,45 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
         n_tracks
     );
 
+    // Ground-truth errors are modulo the object's exact symmetries: the box's +x half has the
+    // second colour, so a turn of 180 degrees about x looks the same (no error) and one about z
+    // does not (an error of about 180 degrees).
+    let half_turn = |axis: nalgebra::Unit<Vector3<f64>>| UnitQuaternion::from_axis_angle(&axis, std::f64::consts::PI);
+    for (i, turn, flipped_is_error) in [
+        (12, half_turn(Vector3::x_axis()), false),
+        (13, half_turn(Vector3::z_axis()), true),
+    ] {
+        let mut turned = scene.world_from_object;
+        turned.rotation *= turn;
+        let truth = json!({"stamp_ns": round_stamp(i), "objects": [{"object": "box", "world_from_object": pose_json(&turned)}]});
+        assert_eq!(app.post_json("/truth", &truth).await.status(), 202);
+        rig.send_round(&app, &scene, i).await;
+        let v = wait_for(&app, &format!("/tracks/{id}"), "a step after the truth turned", |v| {
+            v["stamp_ns"].as_i64() >= Some(t_minus(round_stamp(i)))
+        })
+        .await;
+        let est = pose_from_json(&v["world_from_object"]);
+        let on_truth_deg = est.rotation.angle_to(&scene.world_from_object.rotation).to_degrees();
+        assert!(on_truth_deg < 30.0, "the track left the truth: {on_truth_deg} deg");
+        // the box's exact symmetries: the identity and the half turn about x
+        let x_turned = turned.rotation * half_turn(Vector3::x_axis());
+        let expected = est
+            .rotation
+            .angle_to(&turned.rotation)
+            .min(est.rotation.angle_to(&x_turned))
+            .to_degrees();
+        let reported = v["truth"]["orientation_error_deg"].as_f64().expect("orientation error");
+        assert!(
+            (reported - expected).abs() < 1e-6,
+            "{reported} deg, expected {expected}"
+        );
+        if flipped_is_error {
+            assert!(reported > 150.0, "a turn the colour tells apart: {reported} deg");
+        } else {
+            assert!(reported < 30.0, "an exact symmetry: {reported} deg");
+        }
+    }
+
     // Stopping a track.
     let r = app
         .client
