@@ -39,7 +39,8 @@ pub struct DecisionRequest {
     pub support_plane: Option<PlaneDto>,
     /// Poses drawn from the distribution (default 1,000, at most 5,000).
     pub n_samples: Option<usize>,
-    /// Grasp only when the lower end of the 95% interval on p_success reaches this (default 0.9).
+    /// Grasp only when the lower end of the 95 % Wilson interval on p_success (over the
+    /// samples' effective sample size) reaches this (default 0.9; see the operation's description).
     pub threshold: Option<f64>,
 }
 
@@ -260,6 +261,15 @@ pub fn decide_blocking(state: &AppState, track_id: u64, req: &DecisionRequest) -
     Ok(view)
 }
 
+/// Grasp now, or look more?
+///
+/// Poses drawn from the track's distribution are checked against the gripper; `p_success` is
+/// the share of samples on which the grasp succeeds. The answer is `grasp` when the lower end
+/// of the 95 % Wilson interval on `p_success`, taken over the samples' effective sample size
+/// (ESS, at most the tracker's 110 particles however many samples are drawn), reaches
+/// `threshold`. With the default 0.9 that needs a sampled rate of at least 0.956 at ESS 110,
+/// 0.983 at ESS 50, 0.942 at ESS 200: the rule is conservative by construction, and an
+/// answer of `observe` with `p_success` near 0.9 means "not sure enough yet", not "will fail".
 #[utoipa::path(post, path = "/tracks/{id}/decision", tag = "decisions",
     params(("id" = u64, Path, description = "Track id")),
     request_body = DecisionRequest,
