@@ -1,0 +1,201 @@
+//! The crate's layering, read from its source: which top-level modules each module names
+//! (`crate::x` paths and `use crate::{x, ...}` groups), and which HTTP crates it uses.
+//!
+//! - Only `api` uses axum, utoipa, tower or hyper (the binary calls `api`).
+//! - The modules form layers: each names only modules of lower layers, so there is no cycle,
+//!   and sensors, data sets and the generator never depend on the filter.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+
+/// Layers, lowest first; a module may name modules of lower layers only.
+const LAYERS: &[&[&str]] = &[
+    &["geometry", "camera", "mesh"],
+    &["render", "sensor", "symmetry", "grasp"],
+    &["dataset"],
+    &["generate", "tracker"],
+    &["eval"],
+    &["api"],
+];
+
+/// Crates that belong to the HTTP layer.
+const HTTP_CRATES: &[&str] = &[
+    "axum",
+    "utoipa",
+    "utoipa_axum",
+    "utoipa_swagger_ui",
+    "tower",
+    "tower_http",
+    "hyper",
+];
+
+fn rust_files(path: &Path) -> Vec<PathBuf> {
+    if path.is_file() {
+        return vec![path.to_path_buf()];
+    }
+    let mut out = Vec::new();
+    let mut stack = vec![path.to_path_buf()];
+    while let Some(dir) = stack.pop() {
+        for entry in std::fs::read_dir(&dir).expect("readable source folder") {
+            let p = entry.expect("folder entry").path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if p.extension().is_some_and(|e| e == "rs") {
+                out.push(p);
+            }
+        }
+    }
+    out
+}
+
+/// The source without `//` comments (doc links name other modules without depending on them).
+fn strip_comments(source: &str) -> String {
+    source
+        .lines()
+        .map(|l| match l.find("//") {
+            Some(i) => &l[..i],
+            None => l,
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+fn code_of(path: &Path) -> String {
+    strip_comments(&std::fs::read_to_string(path).expect("readable source"))
+}
+
+fn ident_at(s: &str) -> &str {
+    let end = s
+        .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+        .unwrap_or(s.len());
+    &s[..end]
+}
+
+/// Top-level modules named by `code` through `crate::`.
+fn crate_modules(code: &str) -> BTreeSet<String> {
+    let mut out = BTreeSet::new();
+    let mut rest = code;
+    while let Some(i) = rest.find("crate::") {
+        let after = &rest[i + "crate::".len()..];
+        if let Some(group) = after.strip_prefix('{') {
+            // `crate::{a::x, b, c::{y, z}}`: the first identifier of each item at depth 0
+            let mut depth = 0;
+            let mut start = true;
+            for (j, c) in group.char_indices() {
+                match c {
+                    '{' => depth += 1,
+                    '}' if depth == 0 => break,
+                    '}' => depth -= 1,
+                    ',' if depth == 0 => start = true,
+                    c if start && (c.is_ascii_alphabetic() || c == '_') => {
+                        out.insert(ident_at(&group[j..]).to_string());
+                        start = false;
+                    }
+                    _ => {}
+                }
+            }
+        } else {
+            let name = ident_at(after);
+            if !name.is_empty() {
+                out.insert(name.to_string());
+            }
+        }
+        rest = after;
+    }
+    out
+}
+
+/// HTTP crates named by `code` (`axum::...` or `use axum`).
+fn http_crates(code: &str) -> BTreeSet<&'static str> {
+    HTTP_CRATES
+        .iter()
+        .copied()
+        .filter(|c| {
+            code.match_indices(c).any(|(i, _)| {
+                let before = code[..i].chars().next_back();
+                let after = &code[i + c.len()..];
+                let starts_word = !before.is_some_and(|b| b.is_ascii_alphanumeric() || b == '_' || b == ':');
+                starts_word && (after.starts_with("::") || after.starts_with(';'))
+            })
+        })
+        .collect()
+}
+
+fn src() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("src")
+}
+
+/// Every top-level module of the library with the modules and HTTP crates it names.
+fn graph() -> BTreeMap<String, (BTreeSet<String>, BTreeSet<&'static str>)> {
+    let lib = code_of(&src().join("lib.rs"));
+    let modules: Vec<String> = lib
+        .lines()
+        .filter_map(|l| l.trim().strip_prefix("pub mod "))
+        .map(|m| m.trim_end_matches(';').trim().to_string())
+        .collect();
+    assert!(modules.len() >= 10, "modules of lib.rs: {modules:?}");
+    modules
+        .iter()
+        .map(|m| {
+            let dir = src().join(m);
+            let path = if dir.is_dir() {
+                dir
+            } else {
+                src().join(format!("{m}.rs"))
+            };
+            let mut names = BTreeSet::new();
+            let mut http = BTreeSet::new();
+            for f in rust_files(&path) {
+                let code = code_of(&f);
+                names.extend(crate_modules(&code).into_iter().filter(|n| n != m));
+                http.extend(http_crates(&code));
+            }
+            (m.clone(), (names, http))
+        })
+        .collect()
+}
+
+#[test]
+fn the_parser_sees_paths_groups_and_crates() {
+    let code = "use crate::{camera::Intrinsics, geometry::{Pose, look_at}, mesh};\nlet x = crate::tracker::Tracker::new();\nuse axum::Router;\n// crate::api in a comment\n";
+    let names = crate_modules(&strip_comments(code));
+    assert_eq!(
+        names.into_iter().collect::<Vec<_>>(),
+        ["camera", "geometry", "mesh", "tracker"]
+    );
+    assert_eq!(http_crates(code).into_iter().collect::<Vec<_>>(), ["axum"]);
+    assert!(http_crates("let tower_height = 3; mytower::x();").is_empty());
+}
+
+#[test]
+fn only_the_api_speaks_http() {
+    for (m, (_, http)) in graph() {
+        if m != "api" {
+            assert!(http.is_empty(), "{m} uses {http:?}: only api may");
+        }
+    }
+}
+
+#[test]
+fn modules_name_only_lower_layers() {
+    let layer_of = |m: &str| LAYERS.iter().position(|l| l.contains(&m));
+    let g = graph();
+    for (m, (names, _)) in &g {
+        let Some(lm) = layer_of(m) else {
+            panic!("module {m} is in no layer of tests/layers.rs: place it");
+        };
+        for n in names {
+            let Some(ln) = layer_of(n) else {
+                panic!("{m} names {n}, which is in no layer");
+            };
+            assert!(
+                ln < lm,
+                "{m} (layer {lm}) names {n} (layer {ln}): a module may name lower layers only"
+            );
+        }
+    }
+    // the point of the sensor module: data sets and the generator need no filter
+    for m in ["sensor", "dataset", "generate"] {
+        assert!(!g[m].0.contains("tracker"), "{m} imports the tracker");
+    }
+}
