@@ -25,6 +25,7 @@ pub enum MountDto {
 
 /// What a client sends to register a camera.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
 pub struct CameraSpec {
     pub intrinsics: IntrinsicsDto,
     pub mount: MountDto,
@@ -70,6 +71,15 @@ pub fn router() -> OpenApiRouter<super::AppState> {
 pub fn validate(id: &str, spec: CameraSpec) -> Result<Camera, ApiError> {
     check_id("camera", id)?;
     spec.intrinsics.to_intrinsics()?;
+    let k = &spec.intrinsics.k;
+    let (w, h) = (f64::from(spec.intrinsics.width), f64::from(spec.intrinsics.height));
+    // a focal length up to 100 image widths, a principal point within an image of the image
+    let plausible = k[0] <= 100.0 * w && k[4] <= 100.0 * h && k[2].abs() <= 2.0 * w && k[5].abs() <= 2.0 * h;
+    if !plausible {
+        return Err(ApiError::Invalid(format!(
+            "intrinsics: focal lengths must be at most 100 image sizes and the principal point within the image's neighbourhood, got k = {k:?}"
+        )));
+    }
     match &spec.mount {
         MountDto::Stationary { world_from_camera } => {
             world_from_camera.to_pose("mount.world_from_camera")?;
@@ -85,15 +95,31 @@ pub fn validate(id: &str, spec: CameraSpec) -> Result<Camera, ApiError> {
     })
 }
 
-/// Registers (or replaces) a camera in the registry and the store.
+/// Registers (or replaces) a camera in the registry and the store; a replaced camera's waiting
+/// frames are freed (they were taken with the old intrinsics).
 pub fn register(state: &AppState, cam: Camera) -> Result<(), ApiError> {
+    let limits = state.config.limits;
+    let px = u64::from(cam.intrinsics.width) * u64::from(cam.intrinsics.height);
+    if px > limits.max_camera_pixels {
+        return Err(ApiError::LimitReached(format!(
+            "camera '{}' is {}x{} = {px} pixels; this server takes at most {} (--max-camera-pixels)",
+            cam.id, cam.intrinsics.width, cam.intrinsics.height, limits.max_camera_pixels
+        )));
+    }
     let mut reg = state.registry_mut();
     if cam.is_robot() && reg.cameras.values().any(|c| c.is_robot() && c.id != cam.id) {
         return Err(ApiError::Conflict(
             "only one robot camera is supported; delete the other robot camera first".into(),
         ));
     }
+    if !reg.cameras.contains_key(&cam.id) && reg.cameras.len() >= limits.max_cameras {
+        return Err(ApiError::LimitReached(format!(
+            "this server takes at most {} cameras (--max-cameras); delete one first",
+            limits.max_cameras
+        )));
+    }
     state.store.put(Table::Cameras, &cam.id, &cam)?;
+    state.ingest().forget_camera(&cam.id);
     reg.cameras.insert(cam.id.clone(), cam);
     reg.version += 1;
     Ok(())
@@ -121,7 +147,9 @@ async fn get_camera(State(state): State<AppState>, Path(id): Path<String>) -> Re
 #[utoipa::path(put, path = "/cameras/{id}", tag = "cameras",
     params(("id" = String, Path, description = "Camera id")),
     request_body = CameraSpec,
-    responses((status = 200, body = Camera), (status = 422, body = super::error::Problem)))]
+    responses((status = 200, body = Camera), (status = 400, body = super::error::Problem),
+        (status = 409, description = "A second robot camera, or the camera cap is reached", body = super::error::Problem),
+        (status = 415, body = super::error::Problem), (status = 422, body = super::error::Problem)))]
 async fn put_camera(
     State(state): State<AppState>,
     Path(id): Path<String>,
@@ -144,6 +172,7 @@ async fn delete_camera(
         return Err(ApiError::not_found("camera", id));
     }
     state.store.delete(Table::Cameras, &id)?;
+    state.ingest().forget_camera(&id);
     reg.cameras.remove(&id);
     reg.version += 1;
     Ok(super::error::Deleted)

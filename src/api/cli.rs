@@ -1,6 +1,6 @@
 //! `pregrasp serve` and `pregrasp replay`.
 
-use super::{ApiConfig, AppState};
+use super::{ApiConfig, AppState, Limits};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
@@ -13,9 +13,60 @@ pub struct ServeArgs {
     /// Data folder (store, codebook cache); default: <user data dir>/pregrasp.
     #[arg(long)]
     pub data_dir: Option<PathBuf>,
-    /// Bearer token required by every request that changes state.
+    /// Bearer token required by every request that changes state (and with --protect-reads by
+    /// every request but /healthz). Prefer PREGRASP_TOKEN or --token-file: a command-line
+    /// argument shows in `ps`.
     #[arg(long, env = "PREGRASP_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
+    /// Read the bearer token from this file (its first line).
+    #[arg(long, conflicts_with = "token")]
+    pub token_file: Option<PathBuf>,
+    /// Require the token for reads too (camera images, tracks, the dashboard).
+    #[arg(long)]
+    pub protect_reads: bool,
+    /// Allow listening beyond the loopback interface without a token.
+    #[arg(long)]
+    pub insecure: bool,
+    /// A host name (or name:port) requests may address besides the bound address and, when
+    /// bound to loopback, localhost (repeatable; guards against DNS rebinding).
+    #[arg(long = "allowed-host")]
+    pub allowed_hosts: Vec<String>,
+    /// Accept ground truth at POST /truth (for display; on with --demo).
+    #[arg(long)]
+    pub accept_truth: bool,
+    /// Most cameras.
+    #[arg(long, default_value_t = Limits::default().max_cameras)]
+    pub max_cameras: usize,
+    /// Most pixels of one camera image (width x height).
+    #[arg(long, default_value_t = Limits::default().max_camera_pixels)]
+    pub max_camera_pixels: u64,
+    /// Most objects.
+    #[arg(long, default_value_t = Limits::default().max_objects)]
+    pub max_objects: usize,
+    /// Most grippers.
+    #[arg(long, default_value_t = Limits::default().max_grippers)]
+    pub max_grippers: usize,
+    /// Most tracks of one object a client may start with POST /tracks.
+    #[arg(long, default_value_t = Limits::default().max_tracks_per_object)]
+    pub max_tracks_per_object: usize,
+    /// Most tracks in all a client may start with POST /tracks.
+    #[arg(long, default_value_t = Limits::default().max_tracks)]
+    pub max_tracks: usize,
+    /// Longest object name, characters.
+    #[arg(long, default_value_t = Limits::default().max_name_chars)]
+    pub max_name_chars: usize,
+    /// Most codebook files kept in the cache folder.
+    #[arg(long, default_value_t = Limits::default().max_cached_codebooks)]
+    pub max_cached_codebooks: usize,
+    /// Longest time to answer a request, seconds (the event stream excepted).
+    #[arg(long, default_value_t = 60)]
+    pub request_timeout_s: u64,
+    /// Longest time a client may take to send a request's headers, seconds.
+    #[arg(long, default_value_t = 10)]
+    pub header_read_timeout_s: u64,
+    /// Most connections at once.
+    #[arg(long, default_value_t = 256)]
+    pub max_connections: usize,
     /// Built-in objects, gripper and a generated scene replayed into the server, looping.
     #[arg(long)]
     pub demo: bool,
@@ -64,13 +115,88 @@ pub fn default_data_dir() -> PathBuf {
     dirs::data_dir().unwrap_or_else(std::env::temp_dir).join("pregrasp")
 }
 
-pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
+/// Host names requests may address: the configured ones, plus the loopback names when bound to
+/// loopback, else the bound address; empty (no check) when bound to every interface with no
+/// name configured.
+pub fn allowed_hosts(addr: &SocketAddr, configured: &[String]) -> Vec<String> {
+    let mut hosts: Vec<String> = configured.iter().map(|h| h.to_ascii_lowercase()).collect();
+    let ip = addr.ip();
+    if ip.is_loopback() {
+        hosts.extend(["localhost", "127.0.0.1", "[::1]"].map(String::from));
+    } else if ip.is_unspecified() {
+        if hosts.is_empty() {
+            return hosts;
+        }
+        hosts.extend(["localhost", "127.0.0.1", "[::1]"].map(String::from));
+    } else {
+        hosts.push(match ip {
+            std::net::IpAddr::V6(v6) => format!("[{v6}]"),
+            std::net::IpAddr::V4(v4) => v4.to_string(),
+        });
+    }
+    hosts
+}
+
+/// The server's settings from its options (reads `--token-file`; refuses to listen beyond
+/// loopback without a token unless `--insecure`).
+pub fn config_from(args: &ServeArgs) -> anyhow::Result<ApiConfig> {
     let mut config = ApiConfig::new(args.data_dir.clone().unwrap_or_else(default_data_dir));
-    config.token = args.token.clone().filter(|t| !t.is_empty());
-    config.window_ns = args.window_ms as i64 * 1_000_000;
+    let token = match &args.token_file {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .map_err(|e| anyhow::anyhow!("reading --token-file {}: {e}", path.display()))?;
+            Some(text.lines().next().unwrap_or("").trim().to_string())
+        }
+        None => args.token.clone(),
+    };
+    config.token = token.filter(|t| !t.is_empty());
+    if !args.addr.ip().is_loopback() && config.token.is_none() {
+        if !args.insecure {
+            anyhow::bail!(
+                "listening on {} (beyond loopback) without a token: set PREGRASP_TOKEN or --token-file, or pass --insecure",
+                args.addr
+            );
+        }
+        tracing::warn!(
+            "listening on {} without a token (--insecure): anyone who can reach it can change its state",
+            args.addr
+        );
+    }
+    if args.protect_reads && config.token.is_none() {
+        anyhow::bail!("--protect-reads needs a token (PREGRASP_TOKEN or --token-file)");
+    }
+    config.protect_reads = args.protect_reads;
+    config.allowed_hosts = allowed_hosts(&args.addr, &args.allowed_hosts);
+    if config.allowed_hosts.is_empty() {
+        tracing::warn!("listening on every interface with no --allowed-host: the Host header is not checked");
+    }
+    config.accept_truth = args.accept_truth || args.demo;
+    config.limits = Limits {
+        max_cameras: args.max_cameras,
+        max_camera_pixels: args.max_camera_pixels,
+        max_objects: args.max_objects,
+        max_grippers: args.max_grippers,
+        max_tracks_per_object: args.max_tracks_per_object,
+        max_tracks: args.max_tracks,
+        max_name_chars: args.max_name_chars,
+        max_cached_codebooks: args.max_cached_codebooks,
+    };
+    config.request_timeout = std::time::Duration::from_secs(args.request_timeout_s.max(1));
+    config.header_read_timeout = std::time::Duration::from_secs(args.header_read_timeout_s.max(1));
+    config.max_connections = args.max_connections.max(1);
+    config.window_ns = i64::try_from(args.window_ms)
+        .ok()
+        .and_then(|ms| ms.checked_mul(1_000_000))
+        .filter(|ns| *ns <= super::ingest::MAX_STAMP_NS)
+        .ok_or_else(|| anyhow::anyhow!("--window-ms {} is too large", args.window_ms))?;
     if args.codebook_step_deg < config.codebooks.coarse_step_deg {
         config.codebooks.fine = Some((args.codebook_step_deg, crate::tracker::CodebookConfig::default()));
     }
+    Ok(config)
+}
+
+pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
+    let config = config_from(&args)?;
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(async move {
         let state = AppState::open(config.clone())?;

@@ -30,6 +30,10 @@ impl Codebooks {
             .filter(|(h, c)| h == content_hash && c.config.use_color == use_color)
             .map(|(_, c)| c.clone())
     }
+    /// Drops an object's codebook (the object was deleted).
+    pub fn forget(&self, object_id: &str) {
+        self.ready.lock().unwrap_or_else(|p| p.into_inner()).remove(object_id);
+    }
     fn put(&self, object_id: &str, content_hash: &str, cb: Arc<Codebook>) {
         self.ready
             .lock()
@@ -58,41 +62,130 @@ impl Default for CodebookPlan {
     }
 }
 
-fn build(state: &AppState, object_id: &str, step_deg: u32, config: &CodebookConfig) -> Result<(), String> {
-    let (mesh, hash, use_color) = {
-        let reg = state.registry();
-        let o = reg.objects.get(object_id).ok_or("object was deleted")?;
-        (o.mesh.clone(), o.info.content_hash.clone(), o.info.use_color)
-    };
+/// What a build is for: an object with one mesh and one colour choice. A build whose object
+/// no longer matches is stale: it stops at its next batch of views and its result is dropped.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct BuildTag {
+    object_id: String,
+    content_hash: String,
+    use_color: bool,
+}
+
+impl BuildTag {
+    fn is_current(&self, state: &AppState) -> bool {
+        state
+            .registry()
+            .objects
+            .get(&self.object_id)
+            .is_some_and(|o| o.info.content_hash == self.content_hash && o.info.use_color == self.use_color)
+    }
+}
+
+/// A view source that fails once its build is stale, so that a replaced or deleted object's
+/// build ends early instead of running to completion.
+struct Cancellable<'a> {
+    inner: &'a dyn ViewSource,
+    tag: &'a BuildTag,
+    state: &'a AppState,
+}
+
+impl ViewSource for Cancellable<'_> {
+    fn render(
+        &self,
+        intrinsics: &crate::camera::Intrinsics,
+        camera_from_object: &[crate::geometry::Pose],
+    ) -> Result<Vec<(crate::camera::DepthImage, Option<crate::camera::ColorImage>)>, crate::tracker::TrackerError> {
+        if !self.tag.is_current(self.state) {
+            return Err(crate::tracker::TrackerError::Config(STALE_BUILD.into()));
+        }
+        self.inner.render(intrinsics, camera_from_object)
+    }
+}
+
+/// The error text of a build stopped because its object changed.
+const STALE_BUILD: &str = "the object's mesh changed during the build";
+
+/// Why a build produced no codebook.
+enum BuildError {
+    /// The object was replaced or deleted meanwhile (not a failure of the object).
+    Stale,
+    Failed(String),
+}
+
+fn build(
+    state: &AppState,
+    tag: &BuildTag,
+    mesh: &crate::mesh::Mesh,
+    step_deg: u32,
+    config: &CodebookConfig,
+) -> Result<(), BuildError> {
+    let object_id = &tag.object_id;
     let config = &CodebookConfig {
-        use_color: config.use_color && use_color,
+        use_color: config.use_color && tag.use_color,
         ..config.clone()
     };
-    let grid = RotationGrid::new(step_deg).map_err(|e| e.to_string())?;
+    let grid = RotationGrid::new(step_deg).map_err(|e| BuildError::Failed(e.to_string()))?;
     let cache = state.config.data_dir.join("codebooks");
     // Templates come from the wgpu renderer (a real GPU, or lavapipe without one); the CPU
     // rasteriser is the fallback for machines where wgpu finds no usable adapter at all.
-    let gpu_views = template_renderer().and_then(|r| match RendererViews::new(r, &mesh) {
+    let gpu_views = template_renderer().and_then(|r| match RendererViews::new(r, mesh) {
         Ok(v) => Some(v),
         Err(e) => {
             tracing::warn!("cannot upload {object_id} to the renderer ({e}); using the CPU rasteriser");
             None
         }
     });
-    let cpu_views = CpuViews(&mesh);
+    let cpu_views = CpuViews(mesh);
     let source: &dyn ViewSource = match &gpu_views {
         Some(v) => v,
         None => &cpu_views,
     };
-    let cb = Codebook::load_or_build_with(source, &mesh, grid, config, Some(&cache)).map_err(|e| e.to_string())?;
+    let source = Cancellable {
+        inner: source,
+        tag,
+        state,
+    };
+    let built = Codebook::load_or_build_with(&source, mesh, grid, config, Some(&cache));
+    if !tag.is_current(state) {
+        return Err(BuildError::Stale);
+    }
+    let cb = built.map_err(|e| BuildError::Failed(e.to_string()))?;
     tracing::info!(
         "codebook of {object_id}: {step_deg} deg grid, {} bins, {:.1} s{}",
         cb.n_bins(),
         cb.build_seconds,
         if cb.from_cache { " (from cache)" } else { "" }
     );
-    state.codebooks.put(object_id, &hash, Arc::new(cb));
+    if !cb.from_cache {
+        prune_cache(&cache, state.config.limits.max_cached_codebooks);
+    }
+    state.codebooks.put(object_id, &tag.content_hash, Arc::new(cb));
     Ok(())
+}
+
+/// Keeps at most `max_files` codebook files in the cache folder, deleting the least recently
+/// written first.
+pub fn prune_cache(dir: &std::path::Path, max_files: usize) {
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    let mut files: Vec<(std::time::SystemTime, std::path::PathBuf)> = entries
+        .filter_map(Result::ok)
+        .filter(|e| {
+            let name = e.file_name();
+            let name = name.to_string_lossy();
+            name.starts_with("codebook-") && name.ends_with(".bin")
+        })
+        .filter_map(|e| Some((e.metadata().ok()?.modified().ok()?, e.path())))
+        .collect();
+    if files.len() <= max_files {
+        return;
+    }
+    files.sort();
+    let excess = files.len() - max_files;
+    for (_, path) in files.into_iter().take(excess) {
+        if let Err(e) = std::fs::remove_file(&path) {
+            tracing::warn!("cannot remove cached codebook {}: {e}", path.display());
+        }
+    }
 }
 
 /// The process's wgpu renderer (codebook templates, demo cameras), created on first use;
@@ -185,26 +278,45 @@ pub fn spawn_builder(state: AppState, stop: Arc<AtomicBool>) -> Option<std::thre
                     continue;
                 };
                 let (step, config) = &stages[i];
+                let (tag, mesh) = {
+                    let reg = state.registry();
+                    let Some(o) = reg.objects.get(&id) else { continue };
+                    let tag = BuildTag {
+                        object_id: id.clone(),
+                        content_hash: o.info.content_hash.clone(),
+                        use_color: o.info.use_color,
+                    };
+                    (tag, o.mesh.clone())
+                };
                 let status = |status, stages_done: usize, error| CodebookStatus {
                     status,
                     progress: stages_done as f64 / n as f64,
                     grid_step_deg: Some(*step),
                     error,
                 };
+                let set = |s: CodebookStatus| set_codebook_status(&state, &id, &tag.content_hash, tag.use_color, s);
                 // a later stage keeps the earlier codebook in use: the object stays ready
                 let before = if i == 0 {
                     CodebookState::Building
                 } else {
                     CodebookState::Ready
                 };
-                set_codebook_status(&state, &id, status(before, i, None));
+                if !set(status(before, i, None)) {
+                    continue;
+                }
                 let built = match &pool {
-                    Some(p) => p.install(|| build(&state, &id, *step, config)),
-                    None => build(&state, &id, *step, config),
+                    Some(p) => p.install(|| build(&state, &tag, &mesh, *step, config)),
+                    None => build(&state, &tag, &mesh, *step, config),
                 };
                 let after = match built {
                     Ok(()) => status(CodebookState::Ready, i + 1, None),
-                    Err(e) => {
+                    Err(BuildError::Stale) => {
+                        // the new mesh is pending: its own build comes next
+                        tracing::info!("codebook build of {id} abandoned: {STALE_BUILD}");
+                        state.metrics.codebook_builds_cancelled.fetch_add(1, Ordering::Relaxed);
+                        continue;
+                    }
+                    Err(BuildError::Failed(e)) => {
                         tracing::warn!("codebook of {id} failed: {e}");
                         let state_now = if i == 0 {
                             CodebookState::Failed
@@ -215,7 +327,8 @@ pub fn spawn_builder(state: AppState, stop: Arc<AtomicBool>) -> Option<std::thre
                         status(state_now, i, Some(e))
                     }
                 };
-                set_codebook_status(&state, &id, after);
+                // only the status of the mesh this build was for (see `set_codebook_status`)
+                set(after);
             }
         })
         .ok()
@@ -269,6 +382,24 @@ mod tests {
         // nothing left (a failed stage is not retried); one stage only: nothing after coarse
         assert_eq!(next_stage(&reg, 2), None);
         assert_eq!(next_stage(&reg, 1), None);
+    }
+
+    #[test]
+    fn the_cache_keeps_the_newest_codebooks() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        for i in 0..5 {
+            std::fs::write(dir.path().join(format!("codebook-{i}.bin")), b"x").expect("write");
+            // distinct modification times
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        std::fs::write(dir.path().join("other.txt"), b"x").expect("write");
+        prune_cache(dir.path(), 2);
+        let mut left: Vec<String> = std::fs::read_dir(dir.path())
+            .expect("read")
+            .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+            .collect();
+        left.sort();
+        assert_eq!(left, ["codebook-3.bin", "codebook-4.bin", "other.txt"]);
     }
 
     #[test]

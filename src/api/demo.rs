@@ -230,12 +230,23 @@ pub fn register(state: &AppState, scene: &DemoScene) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Forgets the tracks (the robot jumps back to the start of its path at each loop).
-fn reset_tracking(state: &AppState) {
-    *state.engine.lock().unwrap_or_else(|p| p.into_inner()) = None;
+/// Forgets everything that belongs to the last loop (the robot jumps back to the start of its
+/// path at each loop): the tracks, the waiting frames, the odometry buffer and the newest
+/// stamps, so that no step fuses a frame of the last loop or interpolates odometry across
+/// the jump.
+pub fn reset_tracking(state: &AppState) {
+    let mut engine = state.engine.lock().unwrap_or_else(|p| p.into_inner());
+    *engine = None;
+    // under the engine's lock: the worker cannot step between the two
+    state.ingest().clear();
+    *state.restored.lock().unwrap_or_else(|p| p.into_inner()) = None;
+    drop(engine);
     let mut b = state.tracking.board_mut();
     b.views.clear();
     b.history.clear();
+    b.world_from_reference = None;
+    drop(b);
+    state.decision_cache.forget(None);
 }
 
 /// Registers the demo scene and starts streaming it (returns the streaming thread's stop flag).

@@ -53,6 +53,21 @@ pub enum ApiError {
     /// The ingest queue is full and the request cannot be taken (back-pressure).
     #[error("{0}")]
     Busy(String),
+    /// A camera exists but has sent no frame (or no colour image) yet.
+    #[error("{0}")]
+    NoFrameYet(String),
+    /// A configured cap (cameras, objects, tracks, ...) would be exceeded.
+    #[error("{0}")]
+    LimitReached(String),
+    /// The route exists but not with this method; `allow` lists the methods it takes.
+    #[error("method not allowed on this route (allowed: {allow})")]
+    MethodNotAllowed { allow: String },
+    /// The route is switched off in this server's configuration.
+    #[error("{0}")]
+    Disabled(String),
+    /// The request's Host header names none of the server's allowed hosts.
+    #[error("host '{0}' is not one of this server's names (see --allowed-host)")]
+    MisdirectedHost(String),
     #[error("internal error: {0}")]
     Internal(String),
 }
@@ -81,6 +96,15 @@ impl ApiError {
             ),
             Self::NotReady(_) => (StatusCode::SERVICE_UNAVAILABLE, "not-ready", "Not ready yet"),
             Self::Busy(_) => (StatusCode::TOO_MANY_REQUESTS, "busy", "Ingest queue full"),
+            Self::NoFrameYet(_) => (StatusCode::NOT_FOUND, "no-frame-yet", "No frame yet"),
+            Self::LimitReached(_) => (StatusCode::CONFLICT, "limit-reached", "Limit reached"),
+            Self::MethodNotAllowed { .. } => (
+                StatusCode::METHOD_NOT_ALLOWED,
+                "method-not-allowed",
+                "Method not allowed",
+            ),
+            Self::Disabled(_) => (StatusCode::FORBIDDEN, "disabled", "Disabled"),
+            Self::MisdirectedHost(_) => (StatusCode::MISDIRECTED_REQUEST, "misdirected", "Unknown host"),
             Self::Internal(_) => (StatusCode::INTERNAL_SERVER_ERROR, "internal", "Internal error"),
         }
     }
@@ -100,11 +124,23 @@ impl ApiError {
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let (status, _, _) = self.parts();
-        if status.is_server_error() {
+        // only a fault of the server is an error of the server's log: a 503 (not ready yet)
+        // is an ordinary answer and any client can provoke it
+        if matches!(self, Self::Internal(_)) {
             tracing::error!("{self}");
         }
         let body = serde_json::to_vec(&self.problem()).unwrap_or_default();
-        (status, [(header::CONTENT_TYPE, "application/problem+json")], body).into_response()
+        let mut resp = (status, [(header::CONTENT_TYPE, "application/problem+json")], body).into_response();
+        if let Self::MethodNotAllowed { allow } = &self
+            && let Ok(v) = header::HeaderValue::from_str(allow)
+        {
+            resp.headers_mut().insert(header::ALLOW, v);
+        }
+        if let Self::Unauthorized = &self {
+            resp.headers_mut()
+                .insert(header::WWW_AUTHENTICATE, header::HeaderValue::from_static("Bearer"));
+        }
+        resp
     }
 }
 
@@ -213,13 +249,25 @@ impl<T: Serialize> IntoResponse for Accepted<T> {
     }
 }
 
-/// Maps a response produced outside our handlers (e.g. a body limit layer's 413) to a problem
-/// document; used by a middleware in `mod.rs`.
-pub(crate) fn status_to_problem(status: StatusCode) -> Option<ApiError> {
-    match status {
+/// Maps a response produced outside our handlers (e.g. a body limit layer's 413, the router's
+/// 405 with its `Allow` header) to a problem document; used by a middleware in `mod.rs`.
+pub(crate) fn response_to_problem(resp: &Response) -> Option<ApiError> {
+    match resp.status() {
         StatusCode::PAYLOAD_TOO_LARGE => Some(too_large()),
-        StatusCode::METHOD_NOT_ALLOWED => Some(ApiError::Malformed("method not allowed on this route".into())),
+        StatusCode::METHOD_NOT_ALLOWED => Some(ApiError::MethodNotAllowed {
+            allow: resp
+                .headers()
+                .get(header::ALLOW)
+                .and_then(|v| v.to_str().ok())
+                .unwrap_or("")
+                .to_string(),
+        }),
         StatusCode::UNSUPPORTED_MEDIA_TYPE => Some(ApiError::UnsupportedMediaType("unsupported content type".into())),
+        StatusCode::NOT_FOUND => Some(ApiError::NotFound {
+            kind: "route",
+            id: String::new(),
+        }),
+        s if s.is_client_error() => Some(ApiError::Malformed(format!("request refused ({s})"))),
         _ => None,
     }
 }

@@ -10,7 +10,7 @@
 use super::AppState;
 use super::error::{Accepted, ApiError};
 use super::events::ServerEvent;
-use super::ingest::{IngestError, IngestedFrame, OdometryMsg};
+use super::ingest::{IngestError, IngestedFrame, OdometryMsg, check_stamp};
 use super::types::{ApiJson, DetectionDto, IntrinsicsDto, PoseDto};
 use crate::camera::{ColorImage, DepthImage};
 use axum::Json;
@@ -55,6 +55,7 @@ pub struct ColorPayload {
 
 /// One camera frame, JSON form.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
 pub struct FrameJson {
     /// Capture time, nanoseconds.
     pub stamp_ns: i64,
@@ -66,6 +67,7 @@ pub struct FrameJson {
 
 /// The `meta` part of a multipart frame.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
 pub struct FrameMeta {
     pub stamp_ns: i64,
     #[serde(default)]
@@ -88,6 +90,7 @@ pub struct FrameAccepted {
 
 /// An odometry message like ROS `nav_msgs/Odometry` plus localisation.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
 pub struct OdometryIn {
     pub stamp_ns: i64,
     /// `odom_from_base` with an optional row-major 6x6 covariance (x, y, z, rx, ry, rz).
@@ -99,6 +102,7 @@ pub struct OdometryIn {
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
 pub struct PoseWithCovarianceDto {
     pub pose: PoseDto,
     pub covariance: Option<Vec<f64>>,
@@ -128,7 +132,55 @@ fn decode_b64(what: &str, s: &str) -> Result<Vec<u8>, ApiError> {
         .map_err(|e| ApiError::Malformed(format!("{what}: not valid base64 ({e})")))
 }
 
-/// Decodes a depth payload and checks it against the camera's size.
+/// Largest depth accepted, metres (beyond it a reading is not a measurement).
+pub const MAX_DEPTH_M: f64 = 1_000.0;
+
+/// Largest `depth_scale` (millimetres per PNG unit): the largest 16-bit value stays within
+/// [`MAX_DEPTH_M`].
+pub const MAX_DEPTH_SCALE: f64 = MAX_DEPTH_M * 1000.0 / u16::MAX as f64;
+
+/// Decoder allocations allowed beyond the pixels themselves (PNG/JPEG row buffers, tables).
+const DECODER_SLACK_BYTES: u64 = 4 * 1024 * 1024;
+
+/// Reads an image's size from its header (no decoding) and checks it against the camera's
+/// intrinsics; then decodes with a memory limit of the expected pixels plus a small slack.
+fn decode_checked(
+    what: &str,
+    bytes: &[u8],
+    format: Option<image::ImageFormat>,
+    bytes_per_px: u64,
+    intr: &IntrinsicsDto,
+) -> Result<image::DynamicImage, ApiError> {
+    let reader = || -> Result<image::ImageReader<std::io::Cursor<&[u8]>>, ApiError> {
+        let cursor = std::io::Cursor::new(bytes);
+        match format {
+            Some(f) => Ok(image::ImageReader::with_format(cursor, f)),
+            None => image::ImageReader::new(cursor)
+                .with_guessed_format()
+                .map_err(|e| ApiError::Malformed(format!("{what}: {e}"))),
+        }
+    };
+    let (w, h) = reader()?
+        .into_dimensions()
+        .map_err(|e| ApiError::Malformed(format!("{what} is not a readable image: {e}")))?;
+    if (w, h) != (intr.width, intr.height) {
+        return Err(ApiError::Invalid(format!(
+            "{what} image is {w}x{h}, but the camera's intrinsics are {}x{}",
+            intr.width, intr.height
+        )));
+    }
+    let mut limits = image::Limits::default();
+    limits.max_image_width = Some(intr.width);
+    limits.max_image_height = Some(intr.height);
+    limits.max_alloc = Some(u64::from(w) * u64::from(h) * bytes_per_px + DECODER_SLACK_BYTES);
+    let mut r = reader()?;
+    r.limits(limits);
+    r.decode()
+        .map_err(|e| ApiError::Malformed(format!("{what} is not a readable image: {e}")))
+}
+
+/// Decodes a depth payload and checks it against the camera's size (before decoding) and
+/// range (finite, at most [`MAX_DEPTH_M`]).
 pub fn decode_depth(
     bytes: &[u8],
     encoding: DepthEncoding,
@@ -149,67 +201,78 @@ pub fn decode_depth(
                 .chunks_exact(4)
                 .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
                 .collect();
+            if let Some(i) = data.iter().position(|v| f64::from(*v) > MAX_DEPTH_M) {
+                return Err(ApiError::Invalid(format!(
+                    "depth value {} m at index {i} is beyond {MAX_DEPTH_M} m",
+                    data[i]
+                )));
+            }
             DepthImage::new(w, h, data).map_err(|e| ApiError::Invalid(format!("depth: {e}")))
         }
         DepthEncoding::Png16 => {
             let scale = depth_scale.unwrap_or(1.0);
-            if !(scale.is_finite() && scale > 0.0) {
+            if !(scale.is_finite() && scale > 0.0 && scale <= MAX_DEPTH_SCALE) {
                 return Err(ApiError::Invalid(format!(
-                    "depth_scale must be finite and > 0, got {scale}"
+                    "depth_scale (millimetres per unit) must be in (0, {MAX_DEPTH_SCALE:.2}] so that depth stays within {MAX_DEPTH_M} m, got {scale}"
                 )));
             }
-            let img = image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
-                .map_err(|e| ApiError::Malformed(format!("depth is not a readable PNG: {e}")))?;
+            let img = decode_checked("depth", bytes, Some(image::ImageFormat::Png), 2, intr)?;
             let image::DynamicImage::ImageLuma16(img) = img else {
                 return Err(ApiError::Invalid(format!(
                     "depth PNG must be 16-bit grayscale, got {:?}",
                     img.color()
                 )));
             };
-            if img.width() != w || img.height() != h {
-                return Err(ApiError::Invalid(format!(
-                    "depth image is {}x{}, but the camera's intrinsics are {w}x{h}",
-                    img.width(),
-                    img.height()
-                )));
-            }
             DepthImage::from_u16_mm(w, h, img.as_raw(), scale).map_err(|e| ApiError::Invalid(format!("depth: {e}")))
         }
     }
 }
 
-/// Decodes a PNG/JPEG colour image and checks its size.
+/// Decodes a PNG/JPEG colour image, its size checked against the camera's before decoding.
 pub fn decode_color(bytes: &[u8], intr: &IntrinsicsDto) -> Result<ColorImage, ApiError> {
-    let img = image::load_from_memory(bytes)
-        .map_err(|e| ApiError::Malformed(format!("color is not a readable PNG or JPEG: {e}")))?
-        .to_rgb8();
-    if img.width() != intr.width || img.height() != intr.height {
-        return Err(ApiError::Invalid(format!(
-            "color image is {}x{}, but the camera's intrinsics are {}x{}",
-            img.width(),
-            img.height(),
-            intr.width,
-            intr.height
-        )));
-    }
+    // at most 16-bit RGBA while decoding
+    let img = decode_checked("color", bytes, None, 8, intr)?.to_rgb8();
     let (w, h) = (img.width(), img.height());
     let data = img.into_raw().chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
     ColorImage::new(w, h, data).map_err(|e| ApiError::Invalid(format!("color: {e}")))
 }
 
-fn check_detections(state: &AppState, dets: &[DetectionDto]) -> Result<(), ApiError> {
+/// Checks a stamp at the edge (see [`super::ingest::MAX_STAMP_NS`]).
+pub fn validate_stamp(what: &str, stamp_ns: i64) -> Result<(), ApiError> {
+    check_stamp(stamp_ns).map_err(|e| ApiError::Invalid(format!("{what}: {e}")))
+}
+
+/// Most detections in one frame.
+pub const MAX_DETECTIONS_PER_FRAME: usize = 256;
+
+/// Checks detections: known objects, a score in 0..=1, a box of positive size inside the image.
+fn check_detections(state: &AppState, dets: &[DetectionDto], intr: &IntrinsicsDto) -> Result<(), ApiError> {
+    if dets.len() > MAX_DETECTIONS_PER_FRAME {
+        return Err(ApiError::Invalid(format!(
+            "a frame carries at most {MAX_DETECTIONS_PER_FRAME} detections, got {}",
+            dets.len()
+        )));
+    }
     let reg = state.registry();
+    let (w, h) = (f64::from(intr.width), f64::from(intr.height));
     for d in dets {
         if !reg.objects.contains_key(&d.object) {
             return Err(ApiError::Invalid(format!(
                 "detection names unknown object '{}'",
-                d.object
+                super::types::shorten(&d.object)
             )));
         }
         let b = d.bbox_xywh_px;
-        if !b.iter().all(|v| v.is_finite()) || b[2] <= 0.0 || b[3] <= 0.0 || !d.score.is_finite() {
+        let inside = b.iter().all(|v| v.is_finite())
+            && b[0] >= 0.0
+            && b[1] >= 0.0
+            && b[2] > 0.0
+            && b[3] > 0.0
+            && b[0] + b[2] <= w
+            && b[1] + b[3] <= h;
+        if !inside || !(0.0..=1.0).contains(&d.score) {
             return Err(ApiError::Invalid(format!(
-                "detection of '{}' needs finite numbers and a positive box size, got {b:?} score {}",
+                "detection of '{}' needs a box of positive size inside the {w}x{h} image and a score in 0..=1, got {b:?} score {}",
                 d.object, d.score
             )));
         }
@@ -222,7 +285,10 @@ pub fn ingest_frame(state: &AppState, frame: IngestedFrame) -> Result<FrameAccep
     let (camera, stamp_ns) = (frame.camera.clone(), frame.stamp_ns);
     let pushed = state.ingest().push_frame(frame);
     match pushed {
-        Ok(dropped) => {
+        Ok(super::ingest::Pushed { dropped, clock_reset }) => {
+            if clock_reset {
+                tracing::info!("camera '{camera}' restarted its clock (stamp {stamp_ns} ns); its queue starts over");
+            }
             state.metrics.frames_accepted.fetch_add(1, Ordering::Relaxed);
             state
                 .metrics
@@ -244,6 +310,7 @@ pub fn ingest_frame(state: &AppState, frame: IngestedFrame) -> Result<FrameAccep
             state.metrics.frames_stale.fetch_add(1, Ordering::Relaxed);
             Err(ApiError::Stale(e.to_string()))
         }
+        Err(e @ IngestError::BadStamp { .. }) => Err(ApiError::Invalid(e.to_string())),
         Err(e) => Err(ApiError::Stale(e.to_string())),
     }
 }
@@ -323,7 +390,8 @@ async fn post_frame(
             "a frame is application/json (base64 payloads) or multipart/form-data, not '{ct}'"
         )));
     };
-    check_detections(&state, &detections)?;
+    validate_stamp("stamp_ns", stamp_ns)?;
+    check_detections(&state, &detections, &intr)?;
     let frame = tokio::task::spawn_blocking(move || -> Result<IngestedFrame, ApiError> {
         let depth = decode_depth(&depth_bytes, encoding, scale, &intr)?;
         let color = color_bytes.map(|b| decode_color(&b, &intr)).transpose()?;
@@ -341,18 +409,24 @@ async fn post_frame(
     Ok(Accepted(ingest_frame(&state, frame)?))
 }
 
+/// Largest magnitude of an odometry covariance entry (m^2, rad^2).
+pub const MAX_COVARIANCE: f64 = 1e6;
+
 /// Validates an odometry message into the buffer's form.
 pub fn validate_odometry(o: &OdometryIn) -> Result<OdometryMsg, ApiError> {
+    validate_stamp("stamp_ns", o.stamp_ns)?;
+    let plausible =
+        |c: &[f64]| c.iter().all(|v| v.is_finite() && v.abs() <= MAX_COVARIANCE) && (0..6).all(|i| c[i * 7] >= 0.0);
     let covariance = match &o.odom_from_base.covariance {
         None => None,
-        Some(c) if c.len() == 36 && c.iter().all(|v| v.is_finite()) => {
+        Some(c) if c.len() == 36 && plausible(c) => {
             let mut a = [0.0; 36];
             a.copy_from_slice(c);
             Some(a)
         }
         Some(c) => {
             return Err(ApiError::Invalid(format!(
-                "odom_from_base.covariance must be 36 finite numbers (row-major 6x6), got {} values",
+                "odom_from_base.covariance must be 36 numbers of magnitude at most {MAX_COVARIANCE:e} (row-major 6x6, variances >= 0), got {} values",
                 c.len()
             )));
         }
@@ -378,10 +452,16 @@ async fn post_odometry(
     ApiJson(o): ApiJson<OdometryIn>,
 ) -> Result<Accepted<serde_json::Value>, ApiError> {
     let msg = validate_odometry(&o)?;
-    state
-        .ingest()
-        .push_odometry(msg)
-        .map_err(|e| ApiError::Stale(e.to_string()))?;
+    let reset = state.ingest().push_odometry(msg).map_err(|e| match e {
+        IngestError::BadStamp { .. } => ApiError::Invalid(e.to_string()),
+        e => ApiError::Stale(e.to_string()),
+    })?;
+    if reset {
+        tracing::info!(
+            "odometry restarted its clock (stamp {} ns); tracking starts over",
+            o.stamp_ns
+        );
+    }
     state.metrics.odometry_accepted.fetch_add(1, Ordering::Relaxed);
     Ok(Accepted(serde_json::json!({ "stamp_ns": o.stamp_ns })))
 }
@@ -393,13 +473,13 @@ fn latest(state: &AppState, id: &str) -> Result<std::sync::Arc<IngestedFrame>, A
     state
         .ingest()
         .latest(id)
-        .ok_or_else(|| ApiError::NotReady(format!("camera '{id}' has sent no frame yet")))
+        .ok_or_else(|| ApiError::NoFrameYet(format!("camera '{id}' has sent no frame yet")))
 }
 
 #[utoipa::path(get, path = "/cameras/{id}/latest", tag = "ingest",
     params(("id" = String, Path, description = "Camera id")),
-    responses((status = 200, body = LatestFrame), (status = 404, body = super::error::Problem),
-        (status = 503, body = super::error::Problem)))]
+    responses((status = 200, body = LatestFrame),
+        (status = 404, description = "No such camera, or it has sent no frame yet", body = super::error::Problem)))]
 async fn get_latest(State(state): State<AppState>, Path(id): Path<String>) -> Result<Json<LatestFrame>, ApiError> {
     let f = latest(&state, &id)?;
     Ok(Json(LatestFrame {
@@ -464,7 +544,7 @@ async fn get_latest_color_png(
     let c = f
         .color
         .as_ref()
-        .ok_or_else(|| ApiError::NotReady(format!("camera '{id}' sent no colour image")))?;
+        .ok_or_else(|| ApiError::NoFrameYet(format!("camera '{id}' sent no colour image")))?;
     let raw: Vec<u8> = c.data.iter().flatten().copied().collect();
     let img =
         image::RgbImage::from_raw(c.width, c.height, raw).ok_or_else(|| ApiError::internal("colour buffer size"))?;

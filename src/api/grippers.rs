@@ -66,6 +66,12 @@ pub fn register(state: &AppState, id: &str, gripper: serde_json::Value) -> Resul
     check_id("gripper", id)?;
     let gripper = validate(gripper)?;
     let mut reg = state.registry_mut();
+    let max = state.config.limits.max_grippers;
+    if !reg.grippers.contains_key(id) && reg.grippers.len() >= max {
+        return Err(ApiError::LimitReached(format!(
+            "this server takes at most {max} grippers (--max-grippers); delete one first"
+        )));
+    }
     state.store.put(Table::Grippers, id, &gripper)?;
     reg.grippers.insert(id.to_string(), gripper.clone());
     Ok(GripperRecord {
@@ -104,7 +110,9 @@ async fn get_gripper(State(state): State<AppState>, Path(id): Path<String>) -> R
 #[utoipa::path(put, path = "/grippers/{id}", tag = "grippers",
     params(("id" = String, Path, description = "Gripper id")),
     request_body(content = Object, description = "The gripper model"),
-    responses((status = 200, body = GripperRecord), (status = 422, body = super::error::Problem)))]
+    responses((status = 200, body = GripperRecord), (status = 400, body = super::error::Problem),
+        (status = 409, description = "The gripper cap is reached", body = super::error::Problem),
+        (status = 415, body = super::error::Problem), (status = 422, body = super::error::Problem)))]
 async fn put_gripper(
     State(state): State<AppState>,
     Path(id): Path<String>,

@@ -24,6 +24,8 @@ pub struct Health {
     pub objects: usize,
     pub tracks: usize,
     pub queue_depth: usize,
+    /// The caps this server was started with (`serve --max-*`).
+    pub limits: super::Limits,
 }
 
 pub fn router() -> OpenApiRouter<AppState> {
@@ -43,6 +45,7 @@ async fn healthz(State(state): State<AppState>) -> Json<Health> {
         objects,
         tracks: state.tracking.track_count(),
         queue_depth: state.ingest().pending(),
+        limits: state.config.limits,
     })
 }
 
@@ -51,7 +54,7 @@ async fn healthz(State(state): State<AppState>) -> Json<Health> {
 async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
     let m = &state.metrics;
     let mut s = String::new();
-    let counters: [(&str, &str, &std::sync::atomic::AtomicU64); 10] = [
+    let counters: [(&str, &str, &std::sync::atomic::AtomicU64); 11] = [
         ("pregrasp_frames_accepted_total", "Frames accepted", &m.frames_accepted),
         (
             "pregrasp_frames_stale_total",
@@ -89,6 +92,11 @@ async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
             "pregrasp_requests_rejected_total",
             "Requests answered with a 4xx",
             &m.requests_rejected,
+        ),
+        (
+            "pregrasp_codebook_builds_cancelled_total",
+            "Codebook builds abandoned because their object's mesh changed",
+            &m.codebook_builds_cancelled,
         ),
     ];
     for (name, help, v) in counters {
@@ -131,6 +139,32 @@ async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
     ];
     for (name, help, v) in gauges {
         let _ = writeln!(s, "# HELP {name} {help}\n# TYPE {name} gauge\n{name} {v}");
+    }
+    {
+        let name = "pregrasp_clock_resets_total";
+        let v = state.ingest().clock_resets();
+        let _ = writeln!(
+            s,
+            "# HELP {name} Restarted clocks (a camera's or the odometry's stamps jumped back)\n# TYPE {name} counter\n{name} {v}"
+        );
+        let l = state.config.limits;
+        let name = "pregrasp_limit";
+        let _ = writeln!(
+            s,
+            "# HELP {name} Caps of this server (serve --max-*)\n# TYPE {name} gauge"
+        );
+        for (what, v) in [
+            ("cameras", l.max_cameras as f64),
+            ("camera_pixels", l.max_camera_pixels as f64),
+            ("objects", l.max_objects as f64),
+            ("grippers", l.max_grippers as f64),
+            ("tracks_per_object", l.max_tracks_per_object as f64),
+            ("tracks", l.max_tracks as f64),
+            ("name_chars", l.max_name_chars as f64),
+            ("cached_codebooks", l.max_cached_codebooks as f64),
+        ] {
+            let _ = writeln!(s, "{name}{{what=\"{what}\"}} {v}");
+        }
     }
     {
         let ring = m.ingest_to_estimate_us.lock().unwrap_or_else(|p| p.into_inner());

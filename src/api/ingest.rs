@@ -1,16 +1,25 @@
 //! The fixed-lag ingest buffer between the HTTP handlers and the tracking worker.
 //!
 //! Policy (stated once):
-//! - The *newest stamp* is the latest capture time seen from any camera. A frame whose stamp is
-//!   older than `newest - window_ns` is refused (409, counted in `frames_stale`); so is a frame
-//!   whose stamp this camera already sent. Late frames inside the window are accepted, in any
-//!   order.
+//! - Stamps are nanoseconds in `0..=MAX_STAMP_NS`; every difference of stamps is computed with
+//!   checked arithmetic.
+//! - The *newest stamp* is kept per camera (and for odometry). A frame whose stamp is older than
+//!   its camera's newest, or the newest of any camera, minus `window_ns` is refused (409, counted
+//!   in `frames_stale`); so is a frame whose stamp this camera already sent. Late frames inside
+//!   the window are accepted, in any order.
+//! - A jump back by more than `clock_reset_ns` (default: the larger of the window and one
+//!   second) is a restarted clock (a second replay, a simulation restart), as tf treats a
+//!   backwards jump of ROS time: that camera's queue (or the odometry buffer) starts over and
+//!   the message is accepted; odometry restarts bump [`IngestBuffer::epoch`] so that the worker
+//!   starts its tracker over. A camera whose newest stamp is more than `clock_reset_ns` away
+//!   from another camera's is on another clock and does not make that camera's frames stale.
 //! - Accepted frames wait per camera, at most `max_pending` each; when a camera's queue is full
 //!   its oldest waiting frame is dropped and counted (`frames_dropped`). Memory is bounded by
-//!   `cameras x max_pending` frames.
-//! - Each tracker step takes, for every camera, its newest waiting frame within the window
-//!   (older waiting frames of that camera are superseded: dropped and counted), so a slow
-//!   tracker skips stale frames instead of falling behind. A frame is fused once.
+//!   `cameras x max_pending` frames; a deleted or replaced camera's queue is freed.
+//! - Each tracker step takes, for every camera, its newest waiting frame within the window of
+//!   the newest waiting frame of all cameras (older waiting frames of that camera are
+//!   superseded: dropped and counted), so a slow tracker skips stale frames instead of falling
+//!   behind. A frame is fused once.
 //! - Odometry is kept in a bounded, time-sorted buffer and interpolated at each step's
 //!   reference time (linear in translation, slerp in rotation).
 
@@ -25,6 +34,13 @@ use super::types::DetectionDto;
 
 /// Most odometry samples kept.
 pub const MAX_ODOMETRY_SAMPLES: usize = 4_096;
+
+/// Latest accepted stamp: 2100-01-01T00:00:00Z in nanoseconds since the Unix epoch (leaves
+/// headroom below `i64::MAX` for every sum and difference of stamps).
+pub const MAX_STAMP_NS: i64 = 4_102_444_800_000_000_000;
+
+/// Smallest backwards jump treated as a restarted clock.
+pub const MIN_CLOCK_RESET_NS: i64 = 1_000_000_000;
 
 /// One camera image as received.
 #[derive(Debug, Clone)]
@@ -65,6 +81,22 @@ pub enum IngestError {
     Duplicate { camera: String, stamp_ns: i64 },
     #[error("odometry stamp {stamp_ns} ns is more than the window behind the newest odometry ({newest_ns} ns)")]
     OdometryTooOld { stamp_ns: i64, newest_ns: i64 },
+    #[error("stamp {stamp_ns} ns is outside 0..={MAX_STAMP_NS} ns")]
+    BadStamp { stamp_ns: i64 },
+}
+
+/// Checks that a stamp lies in `0..=MAX_STAMP_NS`.
+pub fn check_stamp(stamp_ns: i64) -> Result<(), IngestError> {
+    if (0..=MAX_STAMP_NS).contains(&stamp_ns) {
+        Ok(())
+    } else {
+        Err(IngestError::BadStamp { stamp_ns })
+    }
+}
+
+/// `later - earlier` in nanoseconds, `None` on overflow.
+fn behind_ns(later: i64, earlier: i64) -> Option<i64> {
+    later.checked_sub(earlier)
 }
 
 /// What a step fuses.
@@ -73,6 +105,8 @@ pub struct FusionSet {
     pub frames: Vec<Arc<IngestedFrame>>,
     /// Frames superseded (dropped) when this set was taken.
     pub superseded: usize,
+    /// The buffer's epoch when the set was taken (a set of an earlier epoch is not fused).
+    pub epoch: u64,
 }
 
 #[derive(Default)]
@@ -81,25 +115,41 @@ struct CameraQueue {
     /// Stamps already seen (recent ones, to refuse duplicates).
     recent_stamps: VecDeque<i64>,
     latest: Option<Arc<IngestedFrame>>,
+    /// Newest stamp accepted from this camera.
+    newest_ns: Option<i64>,
 }
 
 /// The buffer (kept behind a mutex in the app state).
 pub struct IngestBuffer {
     window_ns: i64,
+    clock_reset_ns: i64,
     max_pending: usize,
-    newest_ns: Option<i64>,
     cameras: BTreeMap<String, CameraQueue>,
     odometry: VecDeque<OdometryMsg>,
+    epoch: u64,
+    clock_resets: u64,
+}
+
+/// What happened to an accepted frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Pushed {
+    /// Waiting frames of the camera dropped to make room.
+    pub dropped: usize,
+    /// The frame restarted its camera's clock.
+    pub clock_reset: bool,
 }
 
 impl IngestBuffer {
     pub fn new(window_ns: i64, max_pending: usize) -> Self {
+        let window_ns = window_ns.clamp(0, MAX_STAMP_NS);
         Self {
             window_ns,
+            clock_reset_ns: window_ns.max(MIN_CLOCK_RESET_NS),
             max_pending: max_pending.max(1),
-            newest_ns: None,
             cameras: BTreeMap::new(),
             odometry: VecDeque::new(),
+            epoch: 0,
+            clock_resets: 0,
         }
     }
 
@@ -107,42 +157,97 @@ impl IngestBuffer {
         self.window_ns
     }
 
-    /// Accepts a frame; returns how many waiting frames were dropped to make room.
-    pub fn push_frame(&mut self, frame: IngestedFrame) -> Result<usize, IngestError> {
-        if let Some(newest) = self.newest_ns
-            && frame.stamp_ns < newest - self.window_ns
+    /// Bumped whenever the odometry starts over (a restarted clock, [`IngestBuffer::clear`]):
+    /// the tracker must not carry the robot's motion across it.
+    pub fn epoch(&self) -> u64 {
+        self.epoch
+    }
+
+    /// Restarted clocks seen (cameras and odometry).
+    pub fn clock_resets(&self) -> u64 {
+        self.clock_resets
+    }
+
+    /// Frees a camera's queue and stamps (the camera was deleted or replaced).
+    pub fn forget_camera(&mut self, camera: &str) {
+        self.cameras.remove(camera);
+    }
+
+    /// Forgets every waiting frame, stamp and odometry sample (a new start, as the demo's
+    /// loop); bumps the epoch.
+    pub fn clear(&mut self) {
+        self.cameras.clear();
+        self.odometry.clear();
+        self.epoch += 1;
+    }
+
+    /// Cameras with a queue (for tests and metrics).
+    pub fn cameras_with_queue(&self) -> usize {
+        self.cameras.len()
+    }
+
+    /// Odometry samples kept.
+    pub fn odometry_len(&self) -> usize {
+        self.odometry.len()
+    }
+
+    /// Accepts a frame (see the module's policy).
+    pub fn push_frame(&mut self, frame: IngestedFrame) -> Result<Pushed, IngestError> {
+        let stamp = frame.stamp_ns;
+        check_stamp(stamp)?;
+        let (window, reset) = (self.window_ns, self.clock_reset_ns);
+        let own_newest = self.cameras.get(&frame.camera).and_then(|q| q.newest_ns);
+        let clock_reset = own_newest.is_some_and(|n| behind_ns(n, stamp).is_none_or(|b| b > reset));
+        // the newest stamp of every other camera on the same clock
+        let others_newest = self
+            .cameras
+            .iter()
+            .filter(|(id, _)| **id != frame.camera)
+            .filter_map(|(_, q)| q.newest_ns)
+            .filter(|n| behind_ns(*n, stamp).is_some_and(|b| b <= reset))
+            .max();
+        let newest = match (own_newest.filter(|_| !clock_reset), others_newest) {
+            (Some(a), Some(b)) => Some(a.max(b)),
+            (a, b) => a.or(b),
+        };
+        if let Some(newest) = newest
+            && behind_ns(newest, stamp).is_none_or(|b| b > window)
         {
             return Err(IngestError::TooOld {
-                stamp_ns: frame.stamp_ns,
+                stamp_ns: stamp,
                 newest_ns: newest,
-                behind_ms: (newest - frame.stamp_ns) as f64 * 1e-6,
-                window_ms: self.window_ns as f64 * 1e-6,
+                behind_ms: newest.saturating_sub(stamp) as f64 * 1e-6,
+                window_ms: window as f64 * 1e-6,
             });
         }
         let q = self.cameras.entry(frame.camera.clone()).or_default();
-        if q.recent_stamps.contains(&frame.stamp_ns) {
+        if clock_reset {
+            *q = CameraQueue::default();
+            self.clock_resets += 1;
+        }
+        if q.recent_stamps.contains(&stamp) {
             return Err(IngestError::Duplicate {
                 camera: frame.camera.clone(),
-                stamp_ns: frame.stamp_ns,
+                stamp_ns: stamp,
             });
         }
-        q.recent_stamps.push_back(frame.stamp_ns);
+        q.recent_stamps.push_back(stamp);
         if q.recent_stamps.len() > 64 {
             q.recent_stamps.pop_front();
         }
-        self.newest_ns = Some(self.newest_ns.map_or(frame.stamp_ns, |n| n.max(frame.stamp_ns)));
+        q.newest_ns = Some(q.newest_ns.map_or(stamp, |n| n.max(stamp)));
         let frame = Arc::new(frame);
-        if q.latest.as_ref().is_none_or(|l| l.stamp_ns < frame.stamp_ns) {
+        if q.latest.as_ref().is_none_or(|l| l.stamp_ns < stamp) {
             q.latest = Some(frame.clone());
         }
-        let pos = q.pending.partition_point(|f| f.stamp_ns < frame.stamp_ns);
+        let pos = q.pending.partition_point(|f| f.stamp_ns < stamp);
         q.pending.insert(pos, frame);
         let mut dropped = 0;
         while q.pending.len() > self.max_pending {
             q.pending.pop_front();
             dropped += 1;
         }
-        Ok(dropped)
+        Ok(Pushed { dropped, clock_reset })
     }
 
     /// Frames waiting for the tracker (the queue depth).
@@ -155,20 +260,26 @@ impl IngestBuffer {
         self.cameras.get(camera).and_then(|q| q.latest.clone())
     }
 
+    /// The newest stamp of any camera.
     pub fn newest_ns(&self) -> Option<i64> {
-        self.newest_ns
+        self.cameras.values().filter_map(|q| q.newest_ns).max()
     }
 
-    /// Takes each camera's newest waiting frame within the window (`None` when nothing waits).
+    /// Takes each camera's newest waiting frame within the window of the newest waiting frame
+    /// (`None` when nothing waits).
     pub fn take_fusion_set(&mut self) -> Option<FusionSet> {
-        let newest = self.newest_ns?;
+        let newest = self
+            .cameras
+            .values()
+            .filter_map(|q| q.pending.back().map(|f| f.stamp_ns))
+            .max()?;
         let mut frames = Vec::new();
         let mut superseded = 0;
         for q in self.cameras.values_mut() {
             if let Some(f) = q.pending.pop_back() {
                 superseded += q.pending.len();
                 q.pending.clear();
-                if f.stamp_ns >= newest - self.window_ns {
+                if behind_ns(newest, f.stamp_ns).is_some_and(|b| b <= self.window_ns) {
                     frames.push(f);
                 } else {
                     superseded += 1;
@@ -178,18 +289,34 @@ impl IngestBuffer {
         if frames.is_empty() && superseded == 0 {
             return None;
         }
-        Some(FusionSet { frames, superseded })
+        Some(FusionSet {
+            frames,
+            superseded,
+            epoch: self.epoch,
+        })
     }
 
-    /// Accepts an odometry message (time-sorted insert; bounded).
-    pub fn push_odometry(&mut self, msg: OdometryMsg) -> Result<(), IngestError> {
-        if let Some(last) = self.odometry.back()
-            && msg.stamp_ns < last.stamp_ns - self.window_ns
-        {
-            return Err(IngestError::OdometryTooOld {
-                stamp_ns: msg.stamp_ns,
-                newest_ns: last.stamp_ns,
-            });
+    /// Accepts an odometry message (time-sorted insert; bounded); `Ok(true)` when it restarted
+    /// the odometry's clock.
+    pub fn push_odometry(&mut self, msg: OdometryMsg) -> Result<bool, IngestError> {
+        check_stamp(msg.stamp_ns)?;
+        let mut clock_reset = false;
+        if let Some(last) = self.odometry.back() {
+            match behind_ns(last.stamp_ns, msg.stamp_ns) {
+                Some(b) if b <= self.window_ns => {}
+                Some(b) if b <= self.clock_reset_ns => {
+                    return Err(IngestError::OdometryTooOld {
+                        stamp_ns: msg.stamp_ns,
+                        newest_ns: last.stamp_ns,
+                    });
+                }
+                _ => {
+                    self.odometry.clear();
+                    self.epoch += 1;
+                    self.clock_resets += 1;
+                    clock_reset = true;
+                }
+            }
         }
         let pos = self.odometry.partition_point(|m| m.stamp_ns <= msg.stamp_ns);
         if pos > 0 && self.odometry[pos - 1].stamp_ns == msg.stamp_ns {
@@ -200,7 +327,7 @@ impl IngestBuffer {
         while self.odometry.len() > MAX_ODOMETRY_SAMPLES {
             self.odometry.pop_front();
         }
-        Ok(())
+        Ok(clock_reset)
     }
 
     /// Odometry at `stamp_ns`: interpolated between the two samples around it, or the nearest
@@ -211,7 +338,8 @@ impl IngestBuffer {
         let after = self.odometry.get(pos);
         match (before, after) {
             (Some(a), Some(b)) if b.stamp_ns > a.stamp_ns => {
-                let t = (stamp_ns - a.stamp_ns) as f64 / (b.stamp_ns - a.stamp_ns) as f64;
+                let span = behind_ns(b.stamp_ns, a.stamp_ns)? as f64;
+                let t = behind_ns(stamp_ns, a.stamp_ns)? as f64 / span;
                 Some(OdometryMsg {
                     stamp_ns,
                     odom_from_base: interpolate(&a.odom_from_base, &b.odom_from_base, t),
@@ -223,8 +351,8 @@ impl IngestBuffer {
                     },
                 })
             }
-            (Some(a), _) if stamp_ns - a.stamp_ns <= self.window_ns => Some(a.clone()),
-            (None, Some(b)) if b.stamp_ns - stamp_ns <= self.window_ns => Some(b.clone()),
+            (Some(a), _) if behind_ns(stamp_ns, a.stamp_ns).is_some_and(|d| d <= self.window_ns) => Some(a.clone()),
+            (None, Some(b)) if behind_ns(b.stamp_ns, stamp_ns).is_some_and(|d| d <= self.window_ns) => Some(b.clone()),
             _ => None,
         }
     }
@@ -295,7 +423,7 @@ mod tests {
         let mut b = IngestBuffer::new(1000 * MS, 3);
         let mut dropped = 0;
         for i in 0..10 {
-            dropped += b.push_frame(frame("a", i * 10 * MS)).unwrap();
+            dropped += b.push_frame(frame("a", i * 10 * MS)).unwrap().dropped;
         }
         assert_eq!(dropped, 7);
         assert_eq!(b.pending(), 3);
@@ -304,6 +432,45 @@ mod tests {
         assert_eq!(set.frames[0].stamp_ns, 90 * MS);
         assert_eq!(set.superseded, 2);
         assert_eq!(b.pending(), 0);
+    }
+
+    #[test]
+    fn stamps_out_of_range_are_refused_and_a_restarted_clock_starts_over() {
+        let mut b = IngestBuffer::new(100 * MS, 4);
+        for bad in [-1, i64::MIN, i64::MAX, MAX_STAMP_NS + 1] {
+            assert!(matches!(
+                b.push_frame(frame("a", bad)),
+                Err(IngestError::BadStamp { .. })
+            ));
+        }
+        // a far-future stamp inside the range holds back only its own camera, until its clock
+        // restarts
+        b.push_frame(frame("a", MAX_STAMP_NS)).unwrap();
+        assert!(b.push_frame(frame("b", 5_000 * MS)).is_ok());
+        let p = b.push_frame(frame("a", 5_000 * MS)).unwrap();
+        assert!(p.clock_reset);
+        assert_eq!(b.newest_ns(), Some(5_000 * MS));
+        assert_eq!(b.clock_resets(), 1);
+        // odometry: late inside the reset span is stale, far back starts over (a new epoch)
+        let odo = |t: i64| OdometryMsg {
+            stamp_ns: t,
+            odom_from_base: Pose::identity(),
+            covariance: None,
+            world_from_odom: Pose::identity(),
+            base_from_camera: None,
+        };
+        assert_eq!(b.push_odometry(odo(10_000 * MS)), Ok(false));
+        assert!(matches!(
+            b.push_odometry(odo(9_500 * MS)),
+            Err(IngestError::OdometryTooOld { .. })
+        ));
+        assert_eq!(b.push_odometry(odo(0)), Ok(true));
+        assert_eq!(b.epoch(), 1);
+        assert_eq!(b.odometry_len(), 1);
+        // no overflow at the ends of the range
+        assert!(b.odometry_at(MAX_STAMP_NS).is_none());
+        assert!(b.odometry_at(i64::MIN).is_none());
+        assert!(b.odometry_at(0).is_some());
     }
 
     #[test]

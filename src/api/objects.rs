@@ -127,6 +127,7 @@ pub fn register_mesh(
     use_color: bool,
 ) -> Result<ObjectInfo, ApiError> {
     check_id("object", id)?;
+    super::types::check_name(name, state.config.limits.max_name_chars)?;
     mesh.validate().map_err(|e| ApiError::Invalid(format!("mesh: {e}")))?;
     let info = ObjectInfo {
         id: id.to_string(),
@@ -139,6 +140,12 @@ pub fn register_mesh(
         codebook: CodebookStatus::pending(),
     };
     let mut reg = state.registry_mut();
+    let max = state.config.limits.max_objects;
+    if !reg.objects.contains_key(id) && reg.objects.len() >= max {
+        return Err(ApiError::LimitReached(format!(
+            "this server takes at most {max} objects (--max-objects); delete one first"
+        )));
+    }
     state.store.put_bytes(Table::Meshes, id, &mesh.to_ply_bytes())?;
     state.store.put(Table::Objects, id, &info)?;
     reg.objects.insert(
@@ -152,10 +159,22 @@ pub fn register_mesh(
     Ok(info)
 }
 
-/// Updates an object's codebook status (memory only: statuses are recomputed after a restart).
-pub fn set_codebook_status(state: &AppState, id: &str, status: CodebookStatus) {
-    if let Some(o) = state.registry_mut().objects.get_mut(id) {
-        o.info.codebook = status;
+/// Updates an object's codebook status (memory only: statuses are recomputed after a restart)
+/// when the object still has the mesh `content_hash` and colour choice `use_color` the
+/// status is about; returns whether it did (a replaced mesh has a new build ahead of it).
+pub fn set_codebook_status(
+    state: &AppState,
+    id: &str,
+    content_hash: &str,
+    use_color: bool,
+    status: CodebookStatus,
+) -> bool {
+    match state.registry_mut().objects.get_mut(id) {
+        Some(o) if o.info.content_hash == content_hash && o.info.use_color == use_color => {
+            o.info.codebook = status;
+            true
+        }
+        _ => false,
     }
 }
 
@@ -228,6 +247,7 @@ fn format_of(q: &UploadQuery, headers: &HeaderMap, bytes: &[u8]) -> Result<MeshF
     params(("id" = String, Path, description = "Object id"), UploadQuery),
     request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "The mesh file (PLY, OBJ or STL, metres)"),
     responses((status = 200, body = ObjectInfo), (status = 400, body = super::error::Problem),
+        (status = 409, description = "The object cap is reached", body = super::error::Problem),
         (status = 413, body = super::error::Problem), (status = 415, body = super::error::Problem),
         (status = 422, body = super::error::Problem)))]
 async fn put_object(
@@ -240,6 +260,8 @@ async fn put_object(
     let Query(q) = q?;
     let bytes = body?;
     check_id("object", &id)?;
+    let name = q.name.clone().unwrap_or_else(|| id.clone());
+    super::types::check_name(&name, state.config.limits.max_name_chars)?;
     if bytes.len() > MAX_MESH_BYTES {
         return Err(ApiError::TooLarge {
             limit_bytes: MAX_MESH_BYTES,
@@ -250,7 +272,6 @@ async fn put_object(
         .await
         .map_err(ApiError::internal)?
         .map_err(|e| ApiError::Invalid(format!("mesh: {e}")))?;
-    let name = q.name.unwrap_or_else(|| id.clone());
     let info = register_mesh(&state, &id, &name, mesh, q.use_color.unwrap_or(true))?;
     Ok(Json(info))
 }
@@ -270,6 +291,9 @@ async fn delete_object(
     state.store.delete(Table::Meshes, &id)?;
     reg.objects.remove(&id);
     reg.version += 1;
+    drop(reg);
+    state.codebooks.forget(&id);
+    state.truth.lock().unwrap_or_else(|p| p.into_inner()).remove(&id);
     Ok(super::error::Deleted)
 }
 

@@ -247,6 +247,7 @@ async fn stream(
     let t0 = items.first().map(|i| i.0).unwrap_or(0);
     let start = Instant::now();
     let (mut sent, mut refused, mut odometry_sent) = (0, 0, 0);
+    let mut send_truth = true;
     let mut answers = Vec::new();
     let truth_camera = robot.clone().unwrap_or_else(|| seq.rig.reference_camera.clone());
     for (stamp_ns, _, item) in items {
@@ -271,10 +272,18 @@ async fn stream(
                 odometry_sent += 1;
             }
             Item::Frame { camera, frame } => {
-                if camera == truth_camera
+                if send_truth
+                    && camera == truth_camera
                     && let Some(t) = truth_of(seq, &camera, frame)
                 {
-                    Client::check(c.req(reqwest::Method::POST, "/truth").json(&t), "ground truth").await?;
+                    // a server without --accept-truth refuses the channel: stream without it
+                    let r = c.req(reqwest::Method::POST, "/truth").json(&t).send().await?;
+                    if r.status() == reqwest::StatusCode::FORBIDDEN {
+                        tracing::info!("the server does not accept ground truth; streaming without it");
+                        send_truth = false;
+                    } else if !r.status().is_success() {
+                        anyhow::bail!("ground truth: {}", r.status());
+                    }
                 }
                 let form = multipart_frame(seq, &camera, frame)?;
                 let r = c

@@ -15,6 +15,7 @@ use utoipa_axum::routes;
 pub const MAX_TRAJECTORY_POINTS: usize = 500;
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
 pub struct PlaneDto {
     pub normal: [f64; 3],
     pub point_m: [f64; 3],
@@ -53,14 +54,43 @@ pub fn router() -> OpenApiRouter<AppState> {
         .routes(routes!(post_truth))
 }
 
-/// Checks a plane (finite, non-zero normal) and normalises its normal.
+/// The support plane saved by the last run (an unreadable one is logged and ignored).
+pub(super) fn load_support_plane(store: &super::store::Store) -> Option<PlaneDto> {
+    let bytes = store
+        .get_bytes(super::store::Table::Scene, super::store::SUPPORT_PLANE_KEY)
+        .map_err(|e| tracing::warn!("reading the support plane: {e}"))
+        .ok()??;
+    serde_json::from_slice::<PlaneDto>(&bytes)
+        .map_err(|e| tracing::warn!("support plane unreadable, ignored: {e}"))
+        .ok()
+        .and_then(|p| validate_plane(&p).ok())
+}
+
+/// Sets the support plane, in memory and in the store.
+pub fn set_support_plane(state: &AppState, plane: Option<PlaneDto>) -> Result<(), ApiError> {
+    let (table, key) = (super::store::Table::Scene, super::store::SUPPORT_PLANE_KEY);
+    match &plane {
+        Some(p) => state.store.put(table, key, p)?,
+        None => {
+            state.store.delete(table, key)?;
+        }
+    }
+    *state.support_plane.lock().unwrap_or_else(|p| p.into_inner()) = plane;
+    Ok(())
+}
+
+/// Checks a plane (finite, non-zero normal, a point within [`super::types::MAX_POSITION_M`])
+/// and normalises its normal.
 pub fn validate_plane(p: &PlaneDto) -> Result<PlaneDto, ApiError> {
     let n = nalgebra::Vector3::from(p.normal);
-    let ok = p.normal.iter().chain(&p.point_m).all(|v| v.is_finite()) && n.norm() > 1e-9;
+    let ok = p.normal.iter().chain(&p.point_m).all(|v| v.is_finite())
+        && n.norm() > 1e-9
+        && nalgebra::Vector3::from(p.point_m).norm() <= super::types::MAX_POSITION_M;
     if !ok {
-        return Err(ApiError::Invalid(
-            "support plane needs finite numbers and a non-zero normal".into(),
-        ));
+        return Err(ApiError::Invalid(format!(
+            "support plane needs finite numbers, a non-zero normal and a point within {} m",
+            super::types::MAX_POSITION_M
+        )));
     }
     let n = n.normalize();
     Ok(PlaneDto {
@@ -77,7 +107,7 @@ async fn put_support_plane(
     ApiJson(plane): ApiJson<Option<PlaneDto>>,
 ) -> Result<Json<Option<PlaneDto>>, ApiError> {
     let plane = plane.as_ref().map(validate_plane).transpose()?;
-    *state.support_plane.lock().unwrap_or_else(|p| p.into_inner()) = plane;
+    set_support_plane(&state, plane)?;
     Ok(Json(plane))
 }
 
@@ -92,6 +122,7 @@ pub struct TruthObject {
 /// Ground truth for display (the demo, replays of generated data). The tracker never reads it;
 /// it only fills the `truth` field of track views so that the dashboard can plot errors.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
 pub struct TruthIn {
     pub stamp_ns: i64,
     pub objects: Vec<TruthObject>,
@@ -99,14 +130,32 @@ pub struct TruthIn {
 
 #[utoipa::path(post, path = "/truth", tag = "scene",
     request_body = TruthIn,
-    responses((status = 202, description = "Stored for display"), (status = 422, body = super::error::Problem)))]
+    responses((status = 202, description = "Stored for display"),
+        (status = 403, description = "The server was started without --accept-truth (or --demo)", body = super::error::Problem),
+        (status = 422, body = super::error::Problem)))]
 async fn post_truth(
     State(state): State<AppState>,
     ApiJson(t): ApiJson<TruthIn>,
 ) -> Result<super::error::Accepted<serde_json::Value>, ApiError> {
+    if !state.config.accept_truth {
+        return Err(ApiError::Disabled(
+            "this server does not accept ground truth (start it with --accept-truth or --demo)".into(),
+        ));
+    }
+    super::frames::validate_stamp("stamp_ns", t.stamp_ns)?;
     let mut poses = Vec::with_capacity(t.objects.len());
-    for o in &t.objects {
-        poses.push((o.object.clone(), o.world_from_object.to_pose("world_from_object")?));
+    {
+        // one entry per registered object: the map stays as small as the registry
+        let reg = state.registry();
+        for o in &t.objects {
+            if !reg.objects.contains_key(&o.object) {
+                return Err(ApiError::Invalid(format!(
+                    "ground truth names unknown object '{}'",
+                    super::types::shorten(&o.object)
+                )));
+            }
+            poses.push((o.object.clone(), o.world_from_object.to_pose("world_from_object")?));
+        }
     }
     let mut truth = state.truth.lock().unwrap_or_else(|p| p.into_inner());
     for (object, pose) in poses {

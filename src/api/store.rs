@@ -19,19 +19,25 @@ pub enum Table {
     Tracks,
     /// The tracker's compact snapshot (one record, key [`TRACKER_KEY`]).
     TrackerState,
+    /// What is known about the scene (the support plane, key [`SUPPORT_PLANE_KEY`]).
+    Scene,
 }
+
+/// Key of the support plane in [`Table::Scene`].
+pub const SUPPORT_PLANE_KEY: &str = "support_plane";
 
 /// Key of the tracker's snapshot in [`Table::TrackerState`].
 pub const TRACKER_KEY: &str = "tracker";
 
 impl Table {
-    const ALL: [Table; 6] = [
+    const ALL: [Table; 7] = [
         Table::Cameras,
         Table::Objects,
         Table::Meshes,
         Table::Grippers,
         Table::Tracks,
         Table::TrackerState,
+        Table::Scene,
     ];
 
     fn def(self) -> TableDefinition<'static, &'static str, &'static [u8]> {
@@ -42,6 +48,7 @@ impl Table {
             Table::Grippers => "grippers",
             Table::Tracks => "tracks",
             Table::TrackerState => "tracker_state",
+            Table::Scene => "scene",
         })
     }
 }

@@ -16,6 +16,12 @@ use utoipa_axum::routes;
 /// History points kept per track.
 pub const MAX_HISTORY: usize = 600;
 
+/// Range of a prior's position standard deviation, metres.
+pub const MIN_PRIOR_STD_M: f64 = 1e-4;
+pub const MAX_PRIOR_STD_M: f64 = 2.0;
+/// Smallest standard deviation of a prior's rotation, degrees.
+pub const MIN_PRIOR_STD_DEG: f64 = 0.01;
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum TrackStatusDto {
@@ -206,15 +212,17 @@ pub struct StartTrackRequest {
     pub object_id: String,
     pub world_from_object: Option<PoseDto>,
     pub reference_from_object: Option<PoseDto>,
-    /// Standard deviation of the position per axis (default 0.05, at most 2).
+    /// Standard deviation of the position per axis (default 0.05, 0.0001 to 2).
     pub translation_std_m: Option<f64>,
-    /// Standard deviation of the rotation angle (degrees, at most 180); absent: any rotation.
+    /// Standard deviation of the rotation angle (degrees, 0.01 to 180); absent: any rotation.
     pub rotation_std_deg: Option<f64>,
 }
 
 #[utoipa::path(post, path = "/tracks", tag = "tracks", request_body = StartTrackRequest,
     responses((status = 201, body = TrackView), (status = 404, body = super::error::Problem),
-        (status = 409, description = "No cameras registered", body = super::error::Problem),
+        (status = 400, body = super::error::Problem),
+        (status = 409, description = "No cameras registered, or a track cap is reached", body = super::error::Problem),
+        (status = 415, body = super::error::Problem),
         (status = 422, body = super::error::Problem),
         (status = 503, description = "The object's codebook is still building", body = super::error::Problem)))]
 async fn start_track(
@@ -238,16 +246,16 @@ async fn start_track(
         ));
     }
     let std_m = req.translation_std_m.unwrap_or(0.05);
-    if !(std_m > 0.0 && std_m <= 2.0) {
+    if !(MIN_PRIOR_STD_M..=MAX_PRIOR_STD_M).contains(&std_m) {
         return Err(ApiError::Invalid(format!(
-            "translation_std_m must be in (0, 2], got {std_m}"
+            "translation_std_m must be in [{MIN_PRIOR_STD_M}, {MAX_PRIOR_STD_M}], got {std_m}"
         )));
     }
     let rot = match req.rotation_std_deg {
-        Some(d) if d > 0.0 && d <= 180.0 => Some(d.to_radians()),
+        Some(d) if (MIN_PRIOR_STD_DEG..=180.0).contains(&d) => Some(d.to_radians()),
         Some(d) => {
             return Err(ApiError::Invalid(format!(
-                "rotation_std_deg must be in (0, 180], got {d}"
+                "rotation_std_deg must be in [{MIN_PRIOR_STD_DEG}, 180], got {d}"
             )));
         }
         None => None,
@@ -287,13 +295,15 @@ pub struct SamplesView {
 
 #[utoipa::path(get, path = "/tracks/{id}/samples", tag = "tracks",
     params(("id" = u64, Path, description = "Track id"), SamplesQuery),
-    responses((status = 200, body = SamplesView), (status = 404, body = super::error::Problem),
+    responses((status = 200, body = SamplesView), (status = 400, body = super::error::Problem),
+        (status = 404, body = super::error::Problem),
         (status = 422, body = super::error::Problem), (status = 503, body = super::error::Problem)))]
 async fn track_samples(
     State(state): State<AppState>,
     Path(id): Path<String>,
-    axum::extract::Query(q): axum::extract::Query<SamplesQuery>,
+    q: Result<axum::extract::Query<SamplesQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<SamplesView>, ApiError> {
+    let axum::extract::Query(q) = q?;
     let id = parse_id(&id)?;
     let n = q.n.unwrap_or(100);
     if n == 0 || n > super::decisions::MAX_DECISION_SAMPLES {

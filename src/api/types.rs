@@ -11,14 +11,25 @@ use utoipa::ToSchema;
 
 /// A rigid transform `target_from_source`: translation in metres, quaternion `[x, y, z, w]`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
 pub struct PoseDto {
     pub rotation_xyzw: [f64; 4],
     pub translation_m: [f64; 3],
 }
 
+/// Farthest position accepted anywhere (poses, planes), metres from the frame's origin.
+pub const MAX_POSITION_M: f64 = 1_000.0;
+
 impl PoseDto {
-    /// Validates (finite numbers, unit quaternion) into a [`Pose`]; `what` names the field.
+    /// Validates (finite numbers, unit quaternion, a position within [`MAX_POSITION_M`]) into a
+    /// [`Pose`]; `what` names the field.
     pub fn to_pose(&self, what: &str) -> Result<Pose, ApiError> {
+        let t = self.translation_m;
+        if t.iter().all(|v| v.is_finite()) && nalgebra::Vector3::from(t).norm() > MAX_POSITION_M {
+            return Err(ApiError::Invalid(format!(
+                "{what}: translation {t:?} is farther than {MAX_POSITION_M} m from the origin"
+            )));
+        }
         PoseXyzw {
             rotation_xyzw: self.rotation_xyzw,
             translation_m: self.translation_m,
@@ -41,6 +52,7 @@ impl PoseDto {
 /// Pinhole intrinsics like ROS `sensor_msgs/CameraInfo` (`k` row-major 3x3; `d` must be empty
 /// or zero: rectify first).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
 pub struct IntrinsicsDto {
     pub width: u32,
     pub height: u32,
@@ -62,12 +74,33 @@ impl IntrinsicsDto {
 
 /// A 2-D detection of an object in one image.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
 pub struct DetectionDto {
     /// The object's id (as registered under `/objects`).
     pub object: String,
     /// Box `[x, y, width, height]` in pixels.
     pub bbox_xywh_px: [f64; 4],
     pub score: f64,
+}
+
+/// At most 64 characters of `s` for an error message (a client's string is not echoed whole).
+pub fn shorten(s: &str) -> String {
+    let mut out: String = s.chars().take(64).filter(|c| !c.is_control()).collect();
+    if s.chars().count() > 64 {
+        out.push_str("...");
+    }
+    out
+}
+
+/// Checks a display name: at most `max_chars` characters, no control characters.
+pub fn check_name(name: &str, max_chars: usize) -> Result<(), ApiError> {
+    if name.chars().count() > max_chars || name.chars().any(char::is_control) {
+        return Err(ApiError::Invalid(format!(
+            "name '{}' must be at most {max_chars} characters without control characters",
+            shorten(name)
+        )));
+    }
+    Ok(())
 }
 
 /// Checks that an id is usable in a URL path and as a store key.
@@ -81,7 +114,8 @@ pub fn check_id(kind: &str, id: &str) -> Result<(), ApiError> {
         Ok(())
     } else {
         Err(ApiError::Invalid(format!(
-            "{kind} id '{id}' must be 1-64 characters of A-Z, a-z, 0-9, '_', '-', '.'"
+            "{kind} id '{}' must be 1-64 characters of A-Z, a-z, 0-9, '_', '-', '.'",
+            shorten(id)
         )))
     }
 }

@@ -96,6 +96,8 @@ pub struct Engine {
     rng: rand_chacha::ChaCha8Rng,
     /// Tracks of the previous run's snapshot whose models are not in the tracker yet.
     pending: Vec<crate::tracker::TrackSnapshot>,
+    /// The ingest epoch the tracker was built in (the odometry's clock restarted after it).
+    epoch: u64,
 }
 
 impl Engine {
@@ -148,6 +150,7 @@ impl Engine {
             odometry_stamp_ns: None,
             rng: rand_chacha::ChaCha8Rng::seed_from_u64(state.config.tracker.seed ^ 0x5eed),
             pending,
+            epoch: state.ingest().epoch(),
         })
     }
 
@@ -213,6 +216,18 @@ pub fn start_track(
             "object '{object_id}' has no codebook yet (see its codebook status)"
         )));
     }
+    // checked under the engine's lock, so that concurrent starts cannot pass the caps together
+    let limits = state.config.limits;
+    let tracks = engine.tracker.tracks();
+    let of_object = tracks.iter().filter(|t| t.object == object_id).count();
+    if of_object >= limits.max_tracks_per_object || tracks.len() >= limits.max_tracks {
+        return Err(ApiError::LimitReached(format!(
+            "this server keeps at most {} tracks per object and {} in all (--max-tracks-per-object, --max-tracks); '{object_id}' has {of_object}, there are {}: stop one first",
+            limits.max_tracks_per_object,
+            limits.max_tracks,
+            tracks.len()
+        )));
+    }
     let reference_from_object = match (world_from_object, reference_from_object) {
         (Some(w), _) => engine.tracker.world_from_reference().inverse() * w,
         (None, Some(r)) => r,
@@ -246,10 +261,22 @@ pub fn start_track(
 pub fn draw_samples(state: &AppState, track_id: u64, n: usize) -> Result<Drawn, ApiError> {
     let mut guard = state.engine.lock().unwrap_or_else(|p| p.into_inner());
     let known = state.tracking.board().views.contains_key(&track_id);
+    if !known {
+        return Err(ApiError::not_found("track", track_id.to_string()));
+    }
+    // a restarted server answers about its restored tracks before the first frame arrives
+    if guard.is_none() {
+        *guard = Engine::new(state);
+    }
     let engine = guard
         .as_mut()
-        .filter(|_| known)
         .ok_or_else(|| ApiError::not_found("track", track_id.to_string()))?;
+    engine.sync_models(state);
+    if engine.pending.iter().any(|t| t.track.id == track_id) {
+        return Err(ApiError::NotReady(format!(
+            "track {track_id} is restored once its object's codebook is ready"
+        )));
+    }
     let track = engine
         .tracker
         .tracks()
@@ -412,6 +439,23 @@ fn step(state: &AppState, set: &FusionSet) {
         .iter()
         .map(|(k, c)| (k.clone(), c.mount))
         .collect();
+    let epoch = state.ingest().epoch();
+    if set.epoch != epoch {
+        // taken before a restart of the clock (or the demo's loop): it belongs to the last one
+        return;
+    }
+    if guard.as_ref().is_some_and(|e| e.epoch != epoch) {
+        // the odometry started over (a restarted clock, the demo's loop): as tf clears its
+        // buffer, the tracker starts over rather than carry the robot's motion across the jump
+        *guard = None;
+        *state.restored.lock().unwrap_or_else(|p| p.into_inner()) = None;
+        let mut b = state.tracking.board_mut();
+        b.views.clear();
+        b.history.clear();
+        b.world_from_reference = None;
+        drop(b);
+        state.decision_cache.forget(None);
+    }
     if guard.as_ref().is_none_or(|e| e.cameras != cameras_now) {
         // the tracks carry over to the new camera set (those of a removed camera do not)
         if let Some(old) = guard.as_ref() {
@@ -440,7 +484,15 @@ fn step(state: &AppState, set: &FusionSet) {
         MountDto::Robot { base_from_camera } => base_from_camera.to_pose("").ok(),
         _ => None,
     });
-    let odometry_stamp = engine.odometry_stamp_ns.map_or(stamp, |s| s.max(stamp));
+    // odometry never goes back in time, except across a restarted camera clock
+    let clock_reset_ns = state.config.window_ns.max(super::ingest::MIN_CLOCK_RESET_NS);
+    let odometry_stamp = engine.odometry_stamp_ns.map_or(stamp, |s| {
+        if s.checked_sub(stamp).is_none_or(|back| back > clock_reset_ns) {
+            stamp
+        } else {
+            s.max(stamp)
+        }
+    });
     let odometry = robot_base_from_camera.and_then(|registered| {
         state.ingest().odometry_at(odometry_stamp).map(|o| RobotOdometry {
             stamp_ns: odometry_stamp,
@@ -559,6 +611,21 @@ pub fn save_tracker_snapshot(state: &AppState) {
     }
 }
 
+/// Without frames, builds the tracker from the previous run's snapshot and restores its tracks
+/// as their codebooks become ready, so that decisions about them are answered at once.
+fn restore_while_idle(state: &AppState) {
+    let waiting = state.restored.lock().unwrap_or_else(|p| p.into_inner()).is_some();
+    let mut guard = state.engine.lock().unwrap_or_else(|p| p.into_inner());
+    if guard.is_none() && waiting {
+        *guard = Engine::new(state);
+    }
+    if let Some(engine) = guard.as_mut()
+        && !engine.pending.is_empty()
+    {
+        engine.sync_models(state);
+    }
+}
+
 fn run_worker(state: AppState, stop: Arc<AtomicBool>) {
     let mut last_snapshot = Instant::now();
     let mut last_tracker_snapshot = Instant::now();
@@ -582,14 +649,17 @@ fn run_worker(state: AppState, stop: Arc<AtomicBool>) {
                 }
             }
         };
-        if let Some(set) = set {
-            state
-                .metrics
-                .frames_dropped
-                .fetch_add(set.superseded as u64, Ordering::Relaxed);
-            if !set.frames.is_empty() {
-                step(&state, &set);
+        match set {
+            Some(set) => {
+                state
+                    .metrics
+                    .frames_dropped
+                    .fetch_add(set.superseded as u64, Ordering::Relaxed);
+                if !set.frames.is_empty() {
+                    step(&state, &set);
+                }
             }
+            None => restore_while_idle(&state),
         }
         if last_snapshot.elapsed() >= SNAPSHOT_PERIOD {
             last_snapshot = Instant::now();

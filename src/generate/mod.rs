@@ -9,15 +9,15 @@
 //! camera's view. Depth gets noise `N(0, (sigma d)^2)` per pixel. The odometry follows Thrun's
 //! odometry motion model (it drifts); `world_from_odom` keeps the localised base within a small
 //! bounded error of the truth ([`plan`]). `scene_gt_info` comes from the rendered instance mask
-//! and each object's silhouette alone ([`raster`]).
+//! and each object's silhouette alone ([`crate::render::raster::silhouette`], [`gt_info`]).
 //!
 //! Library use: [`generate_sequence`] returns a sequence in memory (images included) for a
 //! demo that replays it without touching disk; [`write_sequence`] streams one to disk.
 //! The same seed gives the same sequence.
 
 pub mod cli;
+pub mod gt_info;
 pub mod plan;
-pub mod raster;
 
 use crate::camera::{CameraError, ColorImage, DepthImage, Intrinsics};
 use crate::dataset::{
@@ -734,8 +734,8 @@ impl Prepared<'_> {
             let id = FIRST_INSTANCE + i as u16;
             let visible: Vec<bool> = r.instance.iter().map(|v| *v == id).collect();
             let camera_from_object = camera_from_world * wfo;
-            let alone = raster::silhouette(&m.mesh, &camera_from_object, intrinsics);
-            gt_info.push(raster::gt_info(&alone, &visible, intrinsics.width));
+            let alone = crate::render::raster::silhouette(&m.mesh, &camera_from_object, intrinsics);
+            gt_info.push(gt_info::gt_info(&alone, &visible, intrinsics.width));
             gt.push(GtObject {
                 obj_id: m.obj_id,
                 camera_from_object,

@@ -19,35 +19,17 @@
 //! The renderer is `Send + Sync`: share it with `Arc`. GPU work is serialised by an internal
 //! mutex (which also guards the cached render targets and readback buffers).
 //!
-//! # Speed (see `benches/render.rs`)
-//! On the 2-core machine without a GPU (lavapipe), batched 64x64 depth views of a
-//! 5,000-triangle mesh cost about 0.25 ms of CPU each (about 4,000 views per CPU-second); per
-//! triangle set-up and rasterisation dominate. What keeps it there: one submit per atlas (a
-//! submit costs about 13 ms on lavapipe); all per-draw records in one uniform buffer, selected
-//! by a dynamic offset (lavapipe then loads a record once per draw; a storage array indexed by
-//! the instance index was loaded per vertex and made vertex work twice as expensive); culling
-//! the invisible faces of closed meshes ([`invisible_faces`]), which halves the triangles the
-//! rasteriser sets up (1.8x faster); depth read back from the reversed f32 z-buffer and
-//! converted to metres on the CPU (resolution about 1e-7 of the depth), so depth-only renders
-//! run no fragment shader at all (10 % faster than writing an `R32Float` target); render
-//! targets and readback buffers cached per size. Views with colour ([`Renderer::render_views`]) cost about 30 % more
-//! than depth only. For whole codebooks use [`Renderer::for_each_view_depth`], which streams
-//! one atlas at a time.
-//!
-//! # What a real GPU changes
-//! Not measured here (no GPU on this machine); what follows is the expected shift. Triangle
-//! work becomes nearly free (microseconds per view), so the cost moves to reading the atlas
-//! back (16 KiB per 64x64 depth view; tens of GB/s over PCIe, i.e. hundreds of thousands of
-//! views per second) and to cutting tiles on the CPU. Worth doing then: a larger atlas
-//! ([`MAX_ATLAS_SIDE_PX`] could follow the device limit, 8192 or more), double-buffered
-//! readback (map atlas k while atlas k+1 renders), and matching codebooks on the GPU in a
-//! compute pass instead of reading views back at all (on lavapipe compute is about 250x slower
-//! than the CPU, so matching stays on the CPU there). Depth precision is unchanged (the
-//! reversed `Depth32Float` z-buffer).
+//! # Speed
+//! On a software adapter a submit is expensive and triangle set-up dominates, so views are
+//! batched into atlases with one submit each, invisible faces of closed meshes are culled, and
+//! depth-only renders run no fragment shader; `benches/render.rs` measures it and
+//! `docs/decisions.md` has the figures. For whole codebooks use
+//! [`Renderer::for_each_view_depth`], which streams one atlas at a time.
 
 mod adapter;
 mod batch;
 mod cull;
+pub mod raster;
 mod readback;
 
 pub use cull::invisible_faces;

@@ -24,6 +24,8 @@ use rand_distr::{Distribution, Normal};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -175,7 +177,7 @@ impl ViewSource for CpuViews<'_> {
         Ok(camera_from_object
             .par_iter()
             .map(|p| {
-                let img = crate::tracker::raster::render(intrinsics, &[(self.0, *p)], 0.01, [0, 0, 0]);
+                let img = crate::render::raster::render(intrinsics, &[(self.0, *p)], 0.01, [0, 0, 0]);
                 (img.depth, Some(img.color))
             })
             .collect())
@@ -612,10 +614,71 @@ fn cache_path(dir: &Path, hash: &str, grid: RotationGrid, config: &CodebookConfi
     ))
 }
 
-fn push_f32s(buf: &mut Vec<u8>, v: &[f32]) {
-    buf.extend_from_slice(&(v.len() as u64).to_le_bytes());
-    for x in v {
-        buf.extend_from_slice(&x.to_le_bytes());
+/// Writes through to a file while hashing what was written (the cache's checksum).
+struct HashingWriter<W: Write> {
+    inner: W,
+    hasher: Sha256,
+}
+
+impl<W: Write> HashingWriter<W> {
+    fn put(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        self.hasher.update(bytes);
+        self.inner.write_all(bytes)
+    }
+
+    /// An array: its length (u64), then its values (f32), little-endian.
+    fn put_f32s(&mut self, v: &[f32]) -> std::io::Result<()> {
+        self.put(&(v.len() as u64).to_le_bytes())?;
+        for chunk in v.chunks(16 * 1024) {
+            let bytes: Vec<u8> = chunk.iter().flat_map(|x| x.to_le_bytes()).collect();
+            self.put(&bytes)?;
+        }
+        Ok(())
+    }
+}
+
+/// Reads from a file while hashing what was read; arrays go straight into their vectors, so a
+/// load holds one copy of the codebook, not two.
+struct HashingReader<R: Read> {
+    inner: R,
+    hasher: Sha256,
+    /// Bytes left before the trailing checksum.
+    left: u64,
+}
+
+impl<R: Read> HashingReader<R> {
+    fn take(&mut self, out: &mut [u8]) -> Result<(), &'static str> {
+        if out.len() as u64 > self.left {
+            return Err("truncated");
+        }
+        self.inner.read_exact(out).map_err(|_| "truncated")?;
+        self.hasher.update(&*out);
+        self.left -= out.len() as u64;
+        Ok(())
+    }
+
+    fn u32(&mut self) -> Result<u32, &'static str> {
+        let mut b = [0u8; 4];
+        self.take(&mut b)?;
+        Ok(u32::from_le_bytes(b))
+    }
+
+    /// An array of exactly `expected` values (checked against the bytes left before allocating).
+    fn f32s(&mut self, expected: usize) -> Result<Vec<f32>, &'static str> {
+        let mut b = [0u8; 8];
+        self.take(&mut b)?;
+        if u64::from_le_bytes(b) != expected as u64 {
+            return Err("array size");
+        }
+        if (expected as u64).saturating_mul(4) > self.left {
+            return Err("truncated");
+        }
+        let mut v = vec![0f32; expected];
+        self.take(bytemuck::cast_slice_mut(&mut v))?;
+        for x in &mut v {
+            *x = f32::from_bits(u32::from_le(x.to_bits()));
+        }
+        Ok(v)
     }
 }
 
@@ -632,11 +695,15 @@ fn write_cache(path: &Path, cb: &Codebook) -> Result<(), TrackerError> {
         blocks: cb.encoder.blocks.clone(),
     };
     let hj = serde_json::to_vec(&header).map_err(|e| TrackerError::Config(e.to_string()))?;
-    let mut buf = Vec::with_capacity(cb.codes.len() * 4 + 1024);
-    buf.extend_from_slice(MAGIC);
-    buf.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
-    buf.extend_from_slice(&(hj.len() as u32).to_le_bytes());
-    buf.extend_from_slice(&hj);
+    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
+    let mut w = HashingWriter {
+        inner: BufWriter::new(File::create(&tmp)?),
+        hasher: Sha256::new(),
+    };
+    w.put(MAGIC)?;
+    w.put(&FORMAT_VERSION.to_le_bytes())?;
+    w.put(&(hj.len() as u32).to_le_bytes())?;
+    w.put(&hj)?;
     for v in [
         &cb.encoder.mean_clean,
         &cb.encoder.mean_observed,
@@ -645,44 +712,48 @@ fn write_cache(path: &Path, cb: &Codebook) -> Result<(), TrackerError> {
         &cb.codes,
         &cb.median_depth_norm,
     ] {
-        push_f32s(&mut buf, v);
+        w.put_f32s(v)?;
     }
-    let sum = Sha256::digest(&buf);
-    buf.extend_from_slice(&sum);
-    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
-    std::fs::write(&tmp, &buf)?;
+    let sum = w.hasher.finalize();
+    w.inner.write_all(&sum)?;
+    w.inner.into_inner().map_err(|e| e.into_error())?.sync_all()?;
     std::fs::rename(&tmp, path)?;
     Ok(())
 }
+
+/// Maximum header size in a cache file (bytes): the JSON of the configuration and blocks.
+const MAX_HEADER_BYTES: usize = 1 << 20;
 
 fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConfig) -> Result<Codebook, TrackerError> {
     let bad = |why: &str| TrackerError::BadCache {
         path: path.display().to_string(),
         why: why.to_string(),
     };
-    let buf = std::fs::read(path)?;
-    if buf.len() < MAGIC.len() + 8 + 32 || &buf[..8] != MAGIC {
+    let file = File::open(path)?;
+    let len = file.metadata()?.len();
+    if len < (MAGIC.len() + 8 + 32) as u64 {
         return Err(bad("no magic"));
     }
-    let (body, sum) = buf.split_at(buf.len() - 32);
-    if Sha256::digest(body).as_slice() != sum {
-        return Err(bad("checksum mismatch"));
-    }
-    let mut pos = 8;
-    let u32_at = |p: usize| -> Result<u32, TrackerError> {
-        body.get(p..p + 4)
-            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .ok_or_else(|| bad("truncated"))
+    let mut r = HashingReader {
+        inner: BufReader::new(file),
+        hasher: Sha256::new(),
+        left: len - 32,
     };
-    if u32_at(pos)? != FORMAT_VERSION {
+    let mut magic = [0u8; 8];
+    r.take(&mut magic).map_err(bad)?;
+    if &magic != MAGIC {
+        return Err(bad("no magic"));
+    }
+    if r.u32().map_err(bad)? != FORMAT_VERSION {
         return Err(bad("format version"));
     }
-    pos += 4;
-    let hl = u32_at(pos)? as usize;
-    pos += 4;
-    let header: Header = serde_json::from_slice(body.get(pos..pos + hl).ok_or_else(|| bad("truncated header"))?)
-        .map_err(|e| bad(&e.to_string()))?;
-    pos += hl;
+    let hl = r.u32().map_err(bad)? as usize;
+    if hl > MAX_HEADER_BYTES {
+        return Err(bad("header too large"));
+    }
+    let mut hj = vec![0u8; hl];
+    r.take(&mut hj).map_err(|_| bad("truncated header"))?;
+    let header: Header = serde_json::from_slice(&hj).map_err(|e| bad(&e.to_string()))?;
     if header.mesh_hash != hash
         || header.grid_step_deg != grid.step_deg()
         || header.encoder_version != ENCODER_VERSION
@@ -691,22 +762,6 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
     {
         return Err(bad("stale key"));
     }
-    let mut read = |expected: usize| -> Result<Vec<f32>, TrackerError> {
-        let n = body
-            .get(pos..pos + 8)
-            .map(|b| u64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]) as usize)
-            .ok_or_else(|| bad("truncated"))?;
-        if n != expected {
-            return Err(bad("array size"));
-        }
-        pos += 8;
-        let bytes = body.get(pos..pos + 4 * n).ok_or_else(|| bad("truncated"))?;
-        pos += 4 * n;
-        Ok(bytes
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect())
-    };
     let (d, k) = (header.input_dim, header.code_dim);
     if header
         .blocks
@@ -715,12 +770,28 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
     {
         return Err(bad("code blocks out of range"));
     }
-    let mean_clean = read(d)?;
-    let mean_observed = read(d)?;
-    let pca_t = read(d * k)?;
-    let ridge_t = read(d * k)?;
-    let codes = read(header.n_bins * k)?;
-    let median_depth_norm = read(grid.n_viewpoints())?;
+    let sizes = [
+        d,
+        d,
+        d.saturating_mul(k),
+        d.saturating_mul(k),
+        header.n_bins.saturating_mul(k),
+        grid.n_viewpoints(),
+    ];
+    let mut arrays = Vec::with_capacity(sizes.len());
+    for n in sizes {
+        arrays.push(r.f32s(n).map_err(bad)?);
+    }
+    if r.left != 0 {
+        return Err(bad("trailing bytes"));
+    }
+    let mut sum = [0u8; 32];
+    r.inner.read_exact(&mut sum).map_err(|_| bad("truncated"))?;
+    if r.hasher.finalize().as_slice() != sum {
+        return Err(bad("checksum mismatch"));
+    }
+    let [mean_clean, mean_observed, pca_t, ridge_t, codes, median_depth_norm]: [Vec<f32>; 6] =
+        arrays.try_into().map_err(|_| bad("arrays"))?;
     if codes.iter().any(|v| !v.is_finite()) {
         return Err(bad("non-finite codes"));
     }

@@ -11,7 +11,6 @@
 //! - [`motion`]: Brownian object motion and the odometry motion model of the robot camera.
 //! - [`estimate`]: mean pose, components, rotation modes, covariance, samples.
 //! - [`filter`]: the [`Tracker`] itself.
-//! - [`raster`]: a small CPU z-buffer rasteriser (codebooks and tests without a GPU renderer).
 //!
 //! # Where the state lives
 //! Particle *positions* live in the reference frame (the robot camera, or the stationary
@@ -51,11 +50,12 @@ pub mod estimate;
 pub mod filter;
 pub mod motion;
 pub mod observation;
-pub mod raster;
 
 use crate::geometry::Pose;
 use serde::{Deserialize, Serialize};
 
+/// The CPU rasteriser lives in [`crate::render::raster`]; this path stays for callers.
+pub use crate::render::raster;
 /// The sensor types live in [`crate::sensor`] (below the tracker); these paths stay for callers.
 pub use crate::sensor::{CameraFrame, CameraMount, Detection, RobotOdometry};
 

@@ -73,7 +73,7 @@ async fn frames_in_both_encodings_are_taken_and_served_back() {
     let img = image::load_from_memory(&depth.bytes().await.expect("bytes")).expect("decode");
     assert_eq!((img.width(), img.height()), (64, 48));
     // ext1 sent no colour.
-    crate::assert_problem(app.get("/cameras/ext1/latest/color.png").await, 503).await;
+    crate::assert_problem(app.get("/cameras/ext1/latest/color.png").await, 404).await;
     // The internal depth of the PNG frame: 8000 * 0.1 mm = 0.8 m.
     let f = app.state.ingest().latest("robot").expect("latest");
     assert!((f.depth.data_m[0] - 0.8).abs() < 1e-6, "{}", f.depth.data_m[0]);

@@ -2,6 +2,7 @@
 //! `spawn_app()` starts a server on 127.0.0.1:0 with a fresh data folder.
 
 mod bad_requests;
+mod hardening;
 mod ingest;
 mod openapi;
 mod registry;
@@ -19,6 +20,7 @@ pub struct TestApp {
     pub data_dir: PathBuf,
     pub token: Option<String>,
     pub state: AppState,
+    pub config: ApiConfig,
     _tmp: Option<tempfile::TempDir>,
     shutdown: Option<tokio::sync::oneshot::Sender<()>>,
     server: Option<tokio::task::JoinHandle<()>>,
@@ -105,35 +107,44 @@ impl TestApp {
     pub async fn restart(mut self) -> TestApp {
         self.stop().await;
         let tmp = self._tmp.take();
-        let dir = self.data_dir.clone();
-        let token = self.token.clone();
+        let config = self.config.clone();
         drop(self);
-        let mut app = spawn_with(dir, token).await;
+        let mut app = spawn_config(config).await;
         app._tmp = tmp;
         app
     }
 }
 
 pub async fn spawn_app() -> TestApp {
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let mut app = spawn_with(tmp.path().to_path_buf(), None).await;
-    app._tmp = Some(tmp);
-    app
+    spawn_app_configured(|_| {}).await
 }
 
 pub async fn spawn_app_with_token(token: &str) -> TestApp {
+    let token = token.to_string();
+    spawn_app_configured(move |c| c.token = Some(token)).await
+}
+
+/// A server on a fresh data folder with the test settings changed by `configure`.
+pub async fn spawn_app_configured(configure: impl FnOnce(&mut ApiConfig)) -> TestApp {
     let tmp = tempfile::tempdir().expect("tempdir");
-    let mut app = spawn_with(tmp.path().to_path_buf(), Some(token.to_string())).await;
+    let mut config = test_config(tmp.path().to_path_buf());
+    configure(&mut config);
+    let mut app = spawn_config(config).await;
     app._tmp = Some(tmp);
     app
 }
 
-async fn spawn_with(data_dir: PathBuf, token: Option<String>) -> TestApp {
-    let mut config = ApiConfig::new(data_dir.clone());
-    config.token = token.clone();
+/// The settings of a test server (small body limit, ground truth accepted).
+pub fn test_config(data_dir: PathBuf) -> ApiConfig {
+    let mut config = ApiConfig::new(data_dir);
     config.max_body_bytes = 4 * 1024 * 1024;
     config.window_ns = 300_000_000;
-    let state = AppState::open(config).expect("open state");
+    config.accept_truth = true;
+    config
+}
+
+async fn spawn_config(config: ApiConfig) -> TestApp {
+    let state = AppState::open(config.clone()).expect("open state");
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind");
     let addr = listener.local_addr().expect("addr");
     let (tx, rx) = tokio::sync::oneshot::channel::<()>();
@@ -150,9 +161,10 @@ async fn spawn_with(data_dir: PathBuf, token: Option<String>) -> TestApp {
     TestApp {
         addr,
         client: reqwest::Client::new(),
-        data_dir,
-        token,
+        data_dir: config.data_dir.clone(),
+        token: config.token.clone(),
         state,
+        config,
         _tmp: None,
         shutdown: Some(tx),
         server: Some(server),

@@ -17,15 +17,14 @@ async fn replay_streams_a_sequence_and_asks_for_decisions() {
     assert!(data.join("rig.json").is_file(), "missing {}", data.display());
     let app = spawn_app().await;
     let out = app.data_dir.join("answers.json");
-    let summary = pregrasp::api::replay::run(ReplayArgs {
+    let args = ReplayArgs {
         data,
         server: app.url(""),
         rate: 0.0,
         token: None,
         out: Some(out.clone()),
-    })
-    .await
-    .expect("replay");
+    };
+    let summary = pregrasp::api::replay::run(args.clone()).await.expect("replay");
     assert_eq!(summary.frames_sent, 10, "{summary:?}");
     assert_eq!(summary.frames_refused, 0);
     assert_eq!(summary.robot_frames, 10, "one answer per reference frame");
@@ -55,4 +54,9 @@ async fn replay_streams_a_sequence_and_asks_for_decisions() {
     // Decisions are asked at every reference frame that has a track (the stream may outrun
     // the tracker, so there may be none).
     assert!(summary.decisions <= summary.robot_frames * 2, "{summary:?}");
+
+    // A second replay of the same sequence (its stamps start over) is taken whole.
+    let again = pregrasp::api::replay::run(args).await.expect("second replay");
+    assert_eq!(again.frames_sent, 10, "{again:?}");
+    assert_eq!(again.frames_refused, 0, "{again:?}");
 }

@@ -364,6 +364,23 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
         v["codebook"]["status"] == "ready"
     })
     .await;
+    // The restored track answers a decision before any new frame arrives.
+    let deadline = std::time::Instant::now() + Duration::from_secs(30);
+    loop {
+        let r = app
+            .post_json(&format!("/tracks/{id}/decision"), &json!({"n_samples": 200}))
+            .await;
+        if r.status() == 200 {
+            break;
+        }
+        // at most "not ready" while its model is restored, never "not found"
+        let p = crate::assert_problem(r, 503).await;
+        assert!(
+            std::time::Instant::now() < deadline,
+            "restored track not answering: {p}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
     // The tracker's state came back too: the next frames update the same track (no new one
     // from the detections), and it is still on the truth.
     let before_restart = track_ids(&app).await;
