@@ -764,6 +764,61 @@ mod tests {
         assert!(md.contains("0.0457"), "paper mean beside ours");
     }
 
+    fn place(log_density: f64, in_50: f64, in_90: f64, volume: f64, translation: Option<f64>) -> TruthPlace {
+        TruthPlace {
+            rotation_log_density: log_density,
+            rotation_truth_in_50: in_50,
+            rotation_truth_in_90: in_90,
+            rotation_volume_90_so3_fraction: volume,
+            translation_truth_in_50: translation.map(|_| 0.0),
+            translation_truth_in_90: translation.map(|_| 1.0),
+            translation_volume_90_m3: translation,
+        }
+    }
+
+    #[test]
+    fn trust_rows_average_coverage_take_median_volumes_and_count_confidently_wrong() {
+        // A uniform frame (log density 0: not below uniform), a sharp right one, a sharp wrong
+        // one (below uniform) and one without a translation mixture.
+        let places = [
+            place(0.0, 0.5, 0.9, 0.9, Some(1e-3)),
+            place(8.0, 0.5, 0.9, 1e-4, Some(1e-6)),
+            place(-20.0, 0.0, 0.0, 1e-4, Some(2e-6)),
+            place(-1.0, 0.0, 1.0, 1e-2, None),
+        ];
+        let row = TrustRow::from_places(&places.iter().collect::<Vec<_>>()).expect("frames");
+        assert_eq!(row.frames, 4);
+        assert_relative_eq!(row.rotation.truth_in_50, 0.25, epsilon = 1e-12);
+        assert_relative_eq!(row.rotation.truth_in_90, 0.7, epsilon = 1e-12);
+        assert_relative_eq!(
+            row.rotation.median_volume_90_so3_fraction,
+            (1e-4 + 1e-2) / 2.0,
+            epsilon = 1e-15
+        );
+        assert_relative_eq!(
+            row.rotation.median_volume_90_sr_rad,
+            row.rotation.median_volume_90_so3_fraction * 8.0 * std::f64::consts::PI.powi(2),
+            epsilon = 1e-12
+        );
+        assert_relative_eq!(row.rotation.median_log_density, -0.5, epsilon = 1e-12);
+        assert_relative_eq!(row.confidently_wrong, 0.5, epsilon = 1e-12);
+        let t = row.translation.as_ref().expect("three frames with a mixture");
+        assert_relative_eq!(t.median_volume_90_m3, 2e-6, epsilon = 1e-15);
+        assert_relative_eq!(t.truth_in_90, 1.0, epsilon = 1e-12);
+        assert!(TrustRow::from_places(&[]).is_none());
+        // The mean row averages the objects' rows.
+        let other = TrustRow::from_places(&[&place(1.0, 1.0, 1.0, 0.5, None)]).expect("one");
+        let mean = TrustRow::mean_of(&[&row, &other]).expect("two");
+        assert_eq!(mean.frames, 5);
+        assert_relative_eq!(mean.confidently_wrong, 0.25, epsilon = 1e-12);
+        assert_relative_eq!(mean.rotation.truth_in_90, 0.85, epsilon = 1e-12);
+        assert_relative_eq!(
+            mean.translation.expect("one row has it").median_volume_90_m3,
+            2e-6,
+            epsilon = 1e-15
+        );
+    }
+
     #[test]
     fn an_object_never_estimated_has_no_errors_but_zero_coverage() {
         let traces = vec![trace("s0", "025_mug", true, &[None, None])];
