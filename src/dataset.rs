@@ -860,11 +860,7 @@ mod tests {
     use super::*;
     use crate::geometry::pose_from_xyzw;
 
-    fn shared() -> PathBuf {
-        std::env::var_os("PREGRASP_SHARED")
-            .map(PathBuf::from)
-            .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"))
-    }
+    use crate::testing::shared_dir as shared;
 
     fn pose(t: [f64; 3], q: [f64; 4]) -> Pose {
         let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();

@@ -17,3 +17,16 @@ pub mod render;
 pub mod sensor;
 pub mod symmetry;
 pub mod tracker;
+
+/// Helpers of the unit tests.
+#[cfg(test)]
+pub(crate) mod testing {
+    use std::path::PathBuf;
+
+    /// The shared data folder (`PREGRASP_SHARED`, else `../shared` beside the repository).
+    pub fn shared_dir() -> PathBuf {
+        std::env::var_os("PREGRASP_SHARED")
+            .map(PathBuf::from)
+            .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared"))
+    }
+}

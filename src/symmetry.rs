@@ -352,11 +352,7 @@ mod tests {
     use approx::assert_relative_eq;
     use std::f64::consts::{FRAC_PI_2, PI};
 
-    fn shared_dir() -> std::path::PathBuf {
-        std::env::var_os("PREGRASP_SHARED")
-            .map(std::path::PathBuf::from)
-            .unwrap_or_else(|| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"))
-    }
+    use crate::testing::shared_dir;
 
     fn rot(axis: Unit<Vector3<f64>>, angle: f64) -> UnitQuaternion<f64> {
         UnitQuaternion::from_axis_angle(&axis, angle)

@@ -163,11 +163,7 @@ mod tests {
     use approx::assert_relative_eq;
     use nalgebra::{Isometry3, Translation3, Unit};
 
-    fn shared_dir() -> std::path::PathBuf {
-        std::env::var_os("PREGRASP_SHARED")
-            .map(std::path::PathBuf::from)
-            .unwrap_or_else(|| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"))
-    }
+    use crate::testing::shared_dir;
 
     fn pose(t: [f64; 3], q: UnitQuaternion<f64>) -> Pose {
         Isometry3::from_parts(Translation3::new(t[0], t[1], t[2]), q)

@@ -119,9 +119,7 @@ mod tests {
 
     #[test]
     fn real_sequence_truth_is_in_the_reference_camera() {
-        let shared = std::env::var_os("PREGRASP_SHARED")
-            .map(std::path::PathBuf::from)
-            .unwrap_or_else(|| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"));
+        let shared = crate::testing::shared_dir();
         let seq = Sequence::open(&shared.join("realdata/ycbv_video_0000/bop")).expect("real data");
         let objs = objects_in_reference(&seq, 1);
         assert_eq!(objs.len(), 1);

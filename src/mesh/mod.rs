@@ -452,7 +452,7 @@ mod tests {
 
     #[test]
     fn loads_every_shared_ycb_mesh() {
-        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/ycb");
+        let dir = crate::testing::shared_dir().join("ycb");
         if !dir.exists() {
             eprintln!("skipping: ../shared/ycb not present");
             return;
