@@ -28,10 +28,14 @@ for _ in $(seq 1 100); do
     curl -sf "http://127.0.0.1:$PORT/healthz" >/dev/null && break
     sleep 0.1
 done
-"$VENV/bin/schemathesis" run "http://127.0.0.1:$PORT/openapi.json" \
+# run from the data folder: schemathesis keeps a cache of its findings in the working folder
+ROOT=$(pwd)
+cd "$DATA"
+"$ROOT/$VENV/bin/schemathesis" run "http://127.0.0.1:$PORT/openapi.json" \
     --url "http://127.0.0.1:$PORT" \
     --checks not_a_server_error,response_schema_conformance,content_type_conformance,status_code_conformance \
     --seed "$SEED" \
     --max-examples "$MAX_EXAMPLES" \
     --request-timeout 30 \
+    --generation-database :memory: \
     --no-color

@@ -108,6 +108,10 @@ pub struct ReplayArgs {
     /// Write the answers (per robot frame: time, estimate, decision) as JSON.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Stream only: ask for no estimate or decision at each robot frame (a soak's streamer,
+    /// whose planners ask on their own).
+    #[arg(long)]
+    pub no_decisions: bool,
 }
 
 /// The default data folder.

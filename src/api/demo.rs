@@ -241,12 +241,7 @@ pub fn reset_tracking(state: &AppState) {
     state.ingest().clear();
     *state.restored.lock().unwrap_or_else(|p| p.into_inner()) = None;
     drop(engine);
-    let mut b = state.tracking.board_mut();
-    b.views.clear();
-    b.history.clear();
-    b.world_from_reference = None;
-    drop(b);
-    state.decision_cache.forget(None);
+    super::tracks::forget_all(state);
 }
 
 /// Registers the demo scene and starts streaming it (returns the streaming thread's stop flag).

@@ -321,11 +321,14 @@ struct ApiDoc;
 
 /// The error answers every operation can give (problem documents), beyond its own.
 fn common_errors(has_body: bool) -> Vec<(&'static str, &'static str)> {
-    let mut v = vec![
+    let mut v: Vec<(&'static str, &'static str)> = vec![
         ("400", "Malformed request (body, path or query)"),
         ("401", "A token is required (state changes; reads with --protect-reads)"),
         ("421", "The Host header names none of the server's names"),
     ];
+    if has_body {
+        v.push(("403", "A state change sent by a web page of another origin"));
+    }
     if has_body {
         v.extend([
             ("413", "Body too large"),
@@ -426,7 +429,8 @@ async fn require_token(State(state): State<AppState>, req: Request, next: Next) 
 }
 
 /// Refuses requests whose `Host` is not one of the server's names (DNS rebinding: a web page
-/// of another origin that resolves its own name to this address).
+/// of another origin that resolves its own name to this address), and state changes sent by a
+/// web page of another origin (`Origin`).
 async fn check_host(State(state): State<AppState>, req: Request, next: Next) -> Response {
     let allowed = &state.config.allowed_hosts;
     if !allowed.is_empty() {
@@ -439,6 +443,24 @@ async fn check_host(State(state): State<AppState>, req: Request, next: Next) -> 
             .to_ascii_lowercase();
         if !host_allowed(&host, allowed) {
             return ApiError::MisdirectedHost(types::shorten(&host)).into_response();
+        }
+        // a web page of another origin may send a "simple" POST (a form, no preflight): a
+        // state change whose Origin is not one of the server's names is refused
+        let changes_state = !matches!(*req.method(), Method::GET | Method::HEAD | Method::OPTIONS);
+        let origin = req
+            .headers()
+            .get(axum::http::header::ORIGIN)
+            .and_then(|v| v.to_str().ok())
+            .map(|o| o.to_ascii_lowercase());
+        if let (true, Some(origin)) = (changes_state, origin) {
+            let origin_host = origin.split_once("://").map_or(origin.as_str(), |(_, h)| h);
+            if !host_allowed(origin_host, allowed) {
+                return ApiError::Disabled(format!(
+                    "state changes from the web origin '{}' are refused",
+                    types::shorten(&origin)
+                ))
+                .into_response();
+            }
         }
     }
     next.run(req).await

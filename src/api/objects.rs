@@ -146,6 +146,16 @@ pub fn register_mesh(
             "this server takes at most {max} objects (--max-objects); delete one first"
         )));
     }
+    // the same mesh again (a replay registering its objects) keeps its codebook; a failed
+    // build is tried again
+    let mut info = info;
+    if let Some(old) = reg.objects.get(id)
+        && old.info.content_hash == info.content_hash
+        && old.info.use_color == info.use_color
+        && old.info.codebook.status != CodebookState::Failed
+    {
+        info.codebook = old.info.codebook.clone();
+    }
     state.store.put_bytes(Table::Meshes, id, &mesh.to_ply_bytes())?;
     state.store.put(Table::Objects, id, &info)?;
     reg.objects.insert(

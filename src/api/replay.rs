@@ -91,7 +91,7 @@ pub async fn run(args: ReplayArgs) -> anyhow::Result<ReplaySummary> {
     let started = Instant::now();
     register(&client, &seq).await?;
     wait_for_codebooks(&client).await?;
-    let answers = stream(&client, &seq, args.rate).await?;
+    let answers = stream(&client, &seq, args.rate, !args.no_decisions).await?;
     let mut summary = summarise(&seq, &answers.0, answers.1);
     summary.wall_s = started.elapsed().as_secs_f64();
     if let Some(out) = &args.out {
@@ -223,6 +223,7 @@ async fn stream(
     c: &Client,
     seq: &Sequence,
     rate: f64,
+    ask_each_frame: bool,
 ) -> anyhow::Result<(Vec<RobotFrameAnswer>, (usize, usize, usize))> {
     let robot = seq.rig.robot_camera().map(str::to_string);
     let mut items: Vec<(i64, u8, Item)> = Vec::new();
@@ -298,7 +299,9 @@ async fn stream(
                     let body: Value = r.json().await.unwrap_or(Value::Null);
                     tracing::warn!("frame {camera}/{frame} refused: {}", body["detail"]);
                 }
-                if Some(&camera) == robot.as_ref() || (robot.is_none() && camera == seq.rig.reference_camera) {
+                if ask_each_frame
+                    && (Some(&camera) == robot.as_ref() || (robot.is_none() && camera == seq.rig.reference_camera))
+                {
                     answers.push(ask(c, seq, frame, stamp_ns).await?);
                 }
             }

@@ -187,6 +187,25 @@ pub(super) fn load_tracker_snapshot(store: &super::store::Store) -> Option<crate
     }
 }
 
+/// Forgets every track (the tracker starts over): the published views, their history, their
+/// stored records (so that a restart does not bring them back) and their decision banks.
+pub fn forget_all(state: &AppState) {
+    let ids: Vec<u64> = {
+        let mut b = state.tracking.board_mut();
+        let ids = b.views.keys().copied().collect();
+        b.views.clear();
+        b.history.clear();
+        b.world_from_reference = None;
+        ids
+    };
+    for id in ids {
+        if let Err(e) = state.store.delete(super::store::Table::Tracks, &id.to_string()) {
+            tracing::warn!("forgetting track {id}: {e}");
+        }
+    }
+    state.decision_cache.forget(None);
+}
+
 /// Saves every track's current view in one transaction (called periodically by the worker).
 pub fn save_snapshots(state: &AppState) -> Result<(), ApiError> {
     let records: Vec<(String, Vec<u8>)> = state

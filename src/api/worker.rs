@@ -476,12 +476,7 @@ fn step(state: &AppState, set: &FusionSet) {
         // buffer, the tracker starts over rather than carry the robot's motion across the jump
         *guard = None;
         *state.restored.lock().unwrap_or_else(|p| p.into_inner()) = None;
-        let mut b = state.tracking.board_mut();
-        b.views.clear();
-        b.history.clear();
-        b.world_from_reference = None;
-        drop(b);
-        state.decision_cache.forget(None);
+        super::tracks::forget_all(state);
     }
     if guard.as_ref().is_none_or(|e| e.cameras != cameras_now) {
         // the tracks carry over to the new camera set (those of a removed camera do not)

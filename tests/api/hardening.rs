@@ -719,6 +719,16 @@ async fn rejections_are_problem_documents() {
         .await
         .expect("get");
     assert_problem(r, 421).await;
+    // a web page of another origin posting a form (no preflight)
+    let r = app
+        .client
+        .post(app.api("/cameras/ext1/frames"))
+        .header("origin", "http://evil.example")
+        .json(&frame_json(S, 64, 48, 0.8))
+        .send()
+        .await
+        .expect("post");
+    refused(&app, &before, r, 403, "a cross-origin frame").await;
     let r = app
         .client
         .get(app.api("/cameras"))

@@ -23,6 +23,7 @@ async fn replay_streams_a_sequence_and_asks_for_decisions() {
         rate: 0.0,
         token: None,
         out: Some(out.clone()),
+        no_decisions: false,
     };
     let summary = pregrasp::api::replay::run(args.clone()).await.expect("replay");
     assert_eq!(summary.frames_sent, 10, "{summary:?}");
