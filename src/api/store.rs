@@ -53,6 +53,10 @@ impl Table {
     }
 }
 
+/// redb's page cache (its default is 1 GiB, which a long run fills with the pages of
+/// snapshots rewritten every few seconds); the store's working set is a few megabytes.
+pub const CACHE_BYTES: usize = 64 * 1024 * 1024;
+
 /// A handle to the store; cheap to share behind an `Arc`.
 pub struct Store {
     db: Database,
@@ -62,7 +66,9 @@ impl Store {
     /// Opens (or creates) `pregrasp.redb` in `data_dir`.
     pub fn open(data_dir: &Path) -> Result<Self, redb::Error> {
         std::fs::create_dir_all(data_dir).map_err(redb::Error::Io)?;
-        let db = Database::create(data_dir.join("pregrasp.redb"))?;
+        let db = Database::builder()
+            .set_cache_size(CACHE_BYTES)
+            .create(data_dir.join("pregrasp.redb"))?;
         let txn = db.begin_write()?;
         for t in Table::ALL {
             txn.open_table(t.def())?;
