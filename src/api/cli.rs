@@ -201,6 +201,7 @@ pub fn config_from(args: &ServeArgs) -> anyhow::Result<ApiConfig> {
 
 pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
     let config = config_from(&args)?;
+    limit_malloc_arenas();
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(async move {
         let state = AppState::open(config.clone())?;
@@ -228,6 +229,25 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
 }
 
 /// Ctrl-C or SIGTERM.
+/// Caps glibc's malloc arenas at one per core before any thread starts. A long-running service
+/// allocates frames, crops and answers on many threads (tokio, rayon, the worker); with glibc's
+/// default of eight arenas per core its resident memory crept up under a steady load (the
+/// soak), with one per core it stays flat (`docs/decisions.md`). Other platforms: nothing.
+fn limit_malloc_arenas() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        let cores = std::thread::available_parallelism().map_or(2, |n| n.get()).max(2);
+        let arenas = libc::c_int::try_from(cores).unwrap_or(libc::c_int::MAX);
+        // SAFETY: mallopt only sets a tuning parameter of the allocator; called before the
+        // runtime and every other thread of the service start.
+        #[allow(unsafe_code)]
+        let ok = unsafe { libc::mallopt(libc::M_ARENA_MAX, arenas) };
+        if ok != 1 {
+            tracing::warn!("cannot cap malloc's arenas at {arenas}");
+        }
+    }
+}
+
 pub async fn shutdown_signal() {
     let ctrl_c = async {
         let _ = tokio::signal::ctrl_c().await;
