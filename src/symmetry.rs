@@ -103,12 +103,7 @@ struct ColoredSurface {
 impl ColoredSurface {
     /// `None` for a mesh parry3d rejects (no triangles).
     fn new(mesh: &Mesh, n: usize) -> Option<Self> {
-        let vertices = mesh
-            .vertices_m
-            .iter()
-            .map(|v| parry3d::math::Vector::new(v[0], v[1], v[2]))
-            .collect();
-        let surface = parry3d::shape::TriMesh::new(vertices, mesh.triangles.clone()).ok()?;
+        let surface = mesh.to_parry()?;
         let vertex_colors: Vec<[f64; 3]> = (0..mesh.vertices_m.len())
             .map(|i| {
                 let c = mesh.colors.get(i).copied().unwrap_or([128, 128, 128]);

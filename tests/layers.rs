@@ -10,6 +10,8 @@ use std::path::{Path, PathBuf};
 
 /// Layers, lowest first; a module may name modules of lower layers only.
 const LAYERS: &[&[&str]] = &[
+    // the unit tests' helpers (compiled for tests only)
+    &["testing"],
     &["geometry", "camera", "mesh"],
     &["render", "sensor", "symmetry", "grasp"],
     &["dataset"],

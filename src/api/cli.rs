@@ -231,8 +231,8 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
 /// Ctrl-C or SIGTERM.
 /// Caps glibc's malloc arenas at one per core before any thread starts. A long-running service
 /// allocates frames, crops and answers on many threads (tokio, rayon, the worker); with glibc's
-/// default of eight arenas per core its resident memory crept up under a steady load (the
-/// soak), with one per core it stays flat (`docs/decisions.md`). Other platforms: nothing.
+/// default of eight arenas per core its resident memory crept higher under the soak's steady
+/// load (`docs/decisions.md`). Other platforms: nothing.
 fn limit_malloc_arenas() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {

@@ -89,12 +89,7 @@ impl ModelPoints {
     /// `None` for a mesh parry3d rejects (no triangles).
     pub fn from_mesh(mesh: &Mesh, n: usize) -> Option<Self> {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
-        let vertices = mesh
-            .vertices_m
-            .iter()
-            .map(|v| parry3d::math::Vector::new(v[0], v[1], v[2]))
-            .collect();
-        let surface = parry3d::shape::TriMesh::new(vertices, mesh.triangles.clone()).ok()?;
+        let surface = mesh.to_parry()?;
         Some(Self {
             points_m: mesh.sample_surface(n, &mut rng),
             surface,

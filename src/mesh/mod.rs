@@ -185,6 +185,17 @@ impl Mesh {
         Self::new(v, c, t)
     }
 
+    /// The mesh as parry3d's triangle mesh (for distances to its surface); `None` when parry3d
+    /// rejects it.
+    pub fn to_parry(&self) -> Option<parry3d::shape::TriMesh> {
+        let vertices = self
+            .vertices_m
+            .iter()
+            .map(|v| parry3d::math::Vector::new(v[0], v[1], v[2]))
+            .collect();
+        parry3d::shape::TriMesh::new(vertices, self.triangles.clone()).ok()
+    }
+
     pub fn vertex(&self, i: u32) -> Point3<f64> {
         let v = self.vertices_m[i as usize];
         Point3::new(v[0] as f64, v[1] as f64, v[2] as f64)
