@@ -484,6 +484,38 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
         }
     }
 
+    // Tracks a client starts are capped per object (4 by default): the one beyond is refused
+    // with a problem document and the tracks stay as they were.
+    let cap = app.config.limits.max_tracks_per_object;
+    let mut refused = None;
+    for _ in 0..cap + 1 {
+        let before = track_ids(&app).await;
+        let r = app
+            .post_json(
+                "/tracks",
+                &json!({"object_id": "box", "world_from_object": pose_json(&prior_pose), "translation_std_m": 0.02}),
+            )
+            .await;
+        if r.status() == 409 {
+            let p = crate::assert_problem(r, 409).await;
+            assert_eq!(track_ids(&app).await, before, "a refused track changes nothing");
+            refused = Some(p);
+            break;
+        }
+        assert_eq!(r.status(), 201);
+    }
+    let p = refused.expect("the cap refuses a track");
+    assert!(p["type"].as_str().is_some_and(|t| t.contains("limit-reached")), "{p}");
+    let box_tracks = app
+        .get_json("/tracks")
+        .await
+        .as_array()
+        .expect("tracks")
+        .iter()
+        .filter(|t| t["object_id"] == "box" && t["status"] != "lost")
+        .count();
+    assert!(box_tracks <= cap, "{box_tracks} live tracks of one object, cap {cap}");
+
     // Stopping a track.
     let r = app
         .client
