@@ -347,17 +347,18 @@ mod tests {
 
         struct Case {
             tables: GridTables,
-            hist: Vec<f32>,
+            rot: crate::tracker::sparse::RotationState,
             positions: Vec<Vector3<f64>>,
         }
 
         impl Case {
             fn new(fill: impl Fn(&GridTables, usize) -> f32) -> Self {
                 let tables = GridTables::new(RotationGrid::new(30).expect("grid"));
-                let hist = (0..tables.grid.len()).map(|b| fill(&tables, b)).collect();
+                let hist: Vec<f32> = (0..tables.grid.len()).map(|b| fill(&tables, b)).collect();
+                let rot = crate::tracker::sparse::RotationState::from_column(&tables, &hist, 1);
                 Self {
                     tables,
-                    hist,
+                    rot,
                     positions: vec![Vector3::new(0.0, 0.0, 1.0)],
                 }
             }
@@ -367,7 +368,7 @@ mod tests {
                     positions_m: &self.positions,
                     sources: &[0],
                     weights: &[1.0],
-                    hist: &self.hist,
+                    rot: &self.rot,
                     tables: &self.tables,
                     reference_from_hist: Pose::identity(),
                 }

@@ -12,6 +12,7 @@
 
 use crate::geometry::{Pose, PoseSamples, RotationGrid, euler_to_rotation, ray_rotation};
 use crate::tracker::bins::GridTables;
+use crate::tracker::sparse::RotationState;
 use crate::tracker::{Component, RotationMode};
 use nalgebra::{Matrix3, Matrix4, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::Rng;
@@ -50,8 +51,8 @@ pub struct ParticleSet<'a> {
     pub sources: &'a [usize],
     /// Normalised particle weights.
     pub weights: &'a [f64],
-    /// Bin-major histograms (`hist[b * n + p]`), each particle's column sums to 1.
-    pub hist: &'a [f32],
+    /// The particles' rotation histograms (each sums to 1).
+    pub rot: &'a RotationState,
     pub tables: &'a GridTables,
     /// The histograms' frame `H` (the reference camera when the track started): positions are
     /// in the current reference frame, bins are allocentric in `H`.
@@ -76,17 +77,15 @@ impl ParticleSet<'_> {
         self.mixture_with(self.weights)
     }
 
-    /// Mixture histogram with other per-particle factors (e.g. weights times a pending
-    /// normalisation of each histogram).
+    /// Mixture histogram with other per-particle factors, over every bin of the grid.
     pub fn mixture_with(&self, factors: &[f64]) -> Vec<f64> {
-        use rayon::prelude::*;
-        let n = self.n();
-        let f32s: Vec<f32> = factors.iter().map(|v| *v as f32).collect();
-        self.hist
-            .par_chunks(n)
-            .with_min_len(1024)
-            .map(|row| row.iter().zip(&f32s).map(|(h, w)| h * w).sum::<f32>() as f64)
-            .collect()
+        self.rot.mixture_dense(self.tables, factors)
+    }
+
+    /// Particle `p`'s histogram at bin `b`.
+    #[inline]
+    fn value(&self, b: usize, p: usize) -> f64 {
+        self.rot.value(self.tables, b, self.rot.column_of[p] as usize) as f64
     }
 
     /// Per-camera components (camera index, weight, mean, covariance).
@@ -159,7 +158,7 @@ impl ParticleSet<'_> {
                 .coords;
             let allo = ray_rotation(&t_h).inverse() * r_h;
             let b = grid.flat_of(&allo);
-            mass += self.weights[p] * self.hist[b * n + p] as f64;
+            mass += self.weights[p] * self.value(b, p);
         }
         mass.max(1e-300).ln()
     }
@@ -172,7 +171,6 @@ impl ParticleSet<'_> {
     /// Read-only: the evaluation's highest-density test (`eval::trust`).
     pub fn rotation_densities(&self, rotations: &[UnitQuaternion<f64>], orbit: &[UnitQuaternion<f64>]) -> Vec<f64> {
         use rayon::prelude::*;
-        let n = self.n();
         let grid = self.tables.grid;
         let per_elevation = grid.n_azimuth() * grid.n_inplane();
         let wsum: f64 = self.weights.iter().sum();
@@ -204,7 +202,7 @@ impl ParticleSet<'_> {
                         }
                         let b = grid.flat_of(&(allo * rs));
                         let volume = self.tables.elevation_volume[b / per_elevation];
-                        total += w * self.hist[b * n + p] as f64 / volume;
+                        total += w * self.value(b, p) / volume;
                     }
                 }
                 if wsum > 0.0 {
@@ -216,63 +214,93 @@ impl ParticleSet<'_> {
             .collect()
     }
 
-    /// `n` poses: a particle by weight, a bin from its histogram, a rotation uniform inside the
-    /// bin (elevation clamped to [0, pi]), egocentric through the particle's ray.
+    /// `n` poses: a particle by weight, a bin from its histogram (an inactive bin by volume),
+    /// a rotation uniform inside the bin (elevation clamped to [0, pi]), egocentric through the
+    /// particle's ray.
     pub fn sample_poses(&self, count: usize, rng: &mut impl Rng) -> PoseSamples {
-        use rayon::prelude::*;
         let n = self.n();
         let grid = self.tables.grid;
-        let nb = grid.len();
+        let rot = self.rot;
+        let nc = rot.n_cols();
         let wsum: f64 = self.weights.iter().sum();
-        // One parallel pass: every particle's mass per chunk of bins (a prefix over chunks
-        // then narrows each draw to one chunk, scanned alone). A per-particle CDF over all
-        // bins would read the bin-major array with stride `n`, once per particle drawn.
-        let chunk_sums: Vec<Vec<f32>> = self
-            .hist
-            .par_chunks(n * SAMPLE_CHUNK_BINS)
-            .map(|chunk| {
-                let mut acc = vec![0f32; n];
-                for row in chunk.chunks(n) {
-                    for (a, h) in acc.iter_mut().zip(row) {
-                        *a += *h;
-                    }
-                }
-                acc
-            })
+        // per column: prefix sums over chunks of active bins, the active and the floor mass
+        let na = rot.active.len();
+        let chunks = na.div_ceil(SAMPLE_CHUNK_BINS);
+        let mut chunk_sums = vec![0f64; chunks * nc];
+        for (a, row) in rot.values.chunks(nc.max(1)).enumerate() {
+            let k = a / SAMPLE_CHUNK_BINS;
+            for (c, v) in row.iter().enumerate() {
+                chunk_sums[k * nc + c] += v.max(0.0) as f64;
+            }
+        }
+        let active_mass: Vec<f64> = (0..nc)
+            .map(|c| (0..chunks).map(|k| chunk_sums[k * nc + c]).sum())
             .collect();
-        let totals: Vec<f32> = (0..n).map(|p| chunk_sums.iter().map(|c| c[p]).sum()).collect();
+        let v_in = rot.inactive_volume(self.tables);
+        let floor_mass: Vec<f64> = rot.floors.iter().map(|f| f.max(0.0) as f64 * v_in).collect();
         let mut weight_cdf = Vec::with_capacity(n);
         let mut acc = 0.0;
         for w in self.weights {
             acc += *w;
             weight_cdf.push(acc);
         }
+        // elevation rows by volume, for draws from the floor
+        let per_row = (grid.n_azimuth() * grid.n_inplane()) as f64;
+        let mut row_cdf = Vec::with_capacity(grid.n_elevation());
+        let mut racc = 0.0;
+        for v in &self.tables.elevation_volume {
+            racc += v * per_row;
+            row_cdf.push(racc);
+        }
         let mut poses = Vec::with_capacity(count);
         let s = grid.step_rad();
         for _ in 0..count {
             let u = rng.random::<f64>() * wsum;
             let p = weight_cdf.partition_point(|c| *c <= u).min(n - 1);
-            let mut target = rng.random::<f32>() * totals[p];
-            let mut b = nb - 1;
-            'chunks: for (c, sums) in chunk_sums.iter().enumerate() {
-                if target >= sums[p] && c + 1 < chunk_sums.len() {
-                    target -= sums[p];
-                    continue;
-                }
-                let b0 = c * SAMPLE_CHUNK_BINS;
-                let b1 = (b0 + SAMPLE_CHUNK_BINS).min(nb);
-                for k in b0..b1 {
-                    let h = self.hist[k * n + p];
-                    if target < h {
-                        b = k;
-                        break 'chunks;
+            let c = rot.column_of[p] as usize;
+            let total = active_mass[c] + floor_mass[c];
+            let mut target = rng.random::<f64>() * total;
+            let b = if target < active_mass[c] && na > 0 {
+                let mut found = rot.active[na - 1] as usize;
+                'chunks: for k in 0..chunks {
+                    let cs = chunk_sums[k * nc + c];
+                    if target >= cs && k + 1 < chunks {
+                        target -= cs;
+                        continue;
                     }
-                    target -= h;
+                    let a0 = k * SAMPLE_CHUNK_BINS;
+                    let a1 = (a0 + SAMPLE_CHUNK_BINS).min(na);
+                    for a in a0..a1 {
+                        let h = rot.values[a * nc + c].max(0.0) as f64;
+                        if target < h {
+                            found = rot.active[a] as usize;
+                            break 'chunks;
+                        }
+                        target -= h;
+                    }
+                    // rounding left a sliver: the chunk's last bin with mass
+                    found = (a0..a1)
+                        .rev()
+                        .find(|a| rot.values[a * nc + c] > 0.0)
+                        .map_or(rot.active[a1 - 1] as usize, |a| rot.active[a] as usize);
+                    break;
                 }
-                // rounding left a sliver: the chunk's last bin with mass
-                b = (b0..b1).rev().find(|k| self.hist[k * n + p] > 0.0).unwrap_or(b1 - 1);
-                break;
-            }
+                found
+            } else {
+                // the floor: a bin by volume, outside the active ones
+                let mut b = 0;
+                for _ in 0..64 {
+                    let r = rng.random::<f64>() * racc;
+                    let e = row_cdf.partition_point(|x| *x <= r).min(grid.n_elevation() - 1);
+                    let a = rng.random_range(0..grid.n_azimuth());
+                    let t = rng.random_range(0..grid.n_inplane());
+                    b = (e * grid.n_azimuth() + a) * grid.n_inplane() + t;
+                    if rot.slot(b).is_none() {
+                        break;
+                    }
+                }
+                b
+            };
             let (e, a, t) = grid.angles_rad(grid.unflat(b));
             let e = (e + (rng.random::<f64>() - 0.5) * s).clamp(0.0, std::f64::consts::PI);
             let a = a + (rng.random::<f64>() - 0.5) * s;
@@ -282,8 +310,8 @@ impl ParticleSet<'_> {
                 .reference_from_hist
                 .inverse_transform_point(&Point3::from(pos))
                 .coords;
-            let rot = self.reference_from_hist.rotation * ray_rotation(&t_h) * euler_to_rotation(e, a, t);
-            poses.push(Pose::from_parts(Translation3::from(pos), rot));
+            let rot_q = self.reference_from_hist.rotation * ray_rotation(&t_h) * euler_to_rotation(e, a, t);
+            poses.push(Pose::from_parts(Translation3::from(pos), rot_q));
         }
         let ess = 1.0 / self.weights.iter().map(|w| (w / wsum).powi(2)).sum::<f64>();
         PoseSamples {
@@ -494,41 +522,53 @@ mod tests {
             Vector3::new(0.1, 0.0, 1.0),
             Vector3::new(0.0, 0.2, 1.0),
         ];
-        let set = ParticleSet {
-            positions_m: &positions,
-            sources: &[0, 0, 0],
-            weights: &[0.6, 0.4, 0.0],
-            hist: &hist,
-            tables: &tables,
-            reference_from_hist: Pose::identity(),
+        // a dense state (every bin active, no floor) and a sparse one with the same histograms
+        let dense = RotationState {
+            active: (0..nb as u32).collect(),
+            values: hist.clone(),
+            floors: vec![0.0; n],
+            column_of: vec![0, 1, 2],
         };
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
-        let s = set.sample_poses(4000, &mut rng);
-        // each sample lies inside (jittered within) one of its particle's bins
-        let mut counts = std::collections::BTreeMap::<(usize, usize), usize>::new();
-        for pose in &s.poses {
-            let p = positions
-                .iter()
-                .position(|q| (q - pose.translation.vector).norm() < 1e-12)
-                .unwrap();
-            let allo = ray_rotation(&pose.translation.vector).inverse() * pose.rotation;
-            let (b, angle) = [5, nb - 1, 2000, 7]
-                .into_iter()
-                .map(|b| (b, grid.rotation(grid.unflat(b)).angle_to(&allo)))
-                .min_by(|a, b| a.1.total_cmp(&b.1))
-                .unwrap();
-            assert!(angle < 20f64.to_radians(), "sample {angle} rad from its bin");
-            *counts.entry((p, b)).or_default() += 1;
+        let mut sparse = dense.clone();
+        sparse.prune(&tables, 1e-6, usize::MAX);
+        assert_eq!(sparse.active, vec![5, 7, 2000, nb as u32 - 1]);
+        for rot in [&dense, &sparse] {
+            let set = ParticleSet {
+                positions_m: &positions,
+                sources: &[0, 0, 0],
+                weights: &[0.6, 0.4, 0.0],
+                rot,
+                tables: &tables,
+                reference_from_hist: Pose::identity(),
+            };
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+            let s = set.sample_poses(4000, &mut rng);
+            // each sample lies inside (jittered within) one of its particle's bins
+            let mut counts = std::collections::BTreeMap::<(usize, usize), usize>::new();
+            for pose in &s.poses {
+                let p = positions
+                    .iter()
+                    .position(|q| (q - pose.translation.vector).norm() < 1e-12)
+                    .unwrap();
+                let allo = ray_rotation(&pose.translation.vector).inverse() * pose.rotation;
+                let (b, angle) = [5, nb - 1, 2000, 7]
+                    .into_iter()
+                    .map(|b| (b, grid.rotation(grid.unflat(b)).angle_to(&allo)))
+                    .min_by(|a, b| a.1.total_cmp(&b.1))
+                    .unwrap();
+                assert!(angle < 20f64.to_radians(), "sample {angle} rad from its bin");
+                *counts.entry((p, b)).or_default() += 1;
+            }
+            let share = |k: (usize, usize)| *counts.get(&k).unwrap_or(&0) as f64 / 4000.0;
+            assert!((share((0, 5)) - 0.15).abs() < 0.03, "{counts:?}");
+            assert!((share((0, nb - 1)) - 0.45).abs() < 0.03, "{counts:?}");
+            assert!((share((1, 2000)) - 0.4).abs() < 0.03, "{counts:?}");
+            assert_eq!(
+                counts.keys().filter(|k| k.0 == 2).count(),
+                0,
+                "weightless particle drawn"
+            );
+            assert_eq!(counts.values().sum::<usize>(), 4000);
         }
-        let share = |k: (usize, usize)| *counts.get(&k).unwrap_or(&0) as f64 / 4000.0;
-        assert!((share((0, 5)) - 0.15).abs() < 0.03, "{counts:?}");
-        assert!((share((0, nb - 1)) - 0.45).abs() < 0.03, "{counts:?}");
-        assert!((share((1, 2000)) - 0.4).abs() < 0.03, "{counts:?}");
-        assert_eq!(
-            counts.keys().filter(|k| k.0 == 2).count(),
-            0,
-            "weightless particle drawn"
-        );
-        assert_eq!(counts.values().sum::<usize>(), 4000);
     }
 }

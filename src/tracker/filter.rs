@@ -21,15 +21,17 @@
 //! (its uncertainty grows with the motion noise).
 
 mod snapshot;
+mod update;
 pub use snapshot::{SNAPSHOT_VERSION, TrackPrior, TrackSnapshot, TrackerSnapshot};
 
 use crate::geometry::{Pose, PoseSamples};
 use crate::mesh::Mesh;
-use crate::tracker::bins::{FusedView, GridTables, blur, fuse_update, fused_loglik_max, gaussian_kernel};
+use crate::tracker::bins::{GridTables, gaussian_kernel};
 use crate::tracker::codebook::Codebook;
-use crate::tracker::estimate::{EstimateConfig, ParticleSet, summarise_rotation};
+use crate::tracker::estimate::{EstimateConfig, ParticleSet};
 use crate::tracker::motion::{OdometryNoise, brownian, move_with_odometry};
-use crate::tracker::observation::{ObservationConfig, ViewEvidence, ViewImage, observe_view};
+use crate::tracker::observation::ObservationConfig;
+use crate::tracker::sparse::{BlurWork, Lattice, RotationState};
 use crate::tracker::{
     CameraFrame, CameraMount, Detection, Estimate, ParticleView, RobotOdometry, StepReport, Track, TrackStatus,
     TrackerError,
@@ -37,7 +39,6 @@ use crate::tracker::{
 use nalgebra::{Point3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -95,7 +96,35 @@ pub struct TrackerConfig {
     /// gave 33.6 degrees, 0.1 lost translation (0.033 m).
     #[serde(default = "default_view_weight_tempering")]
     pub view_weight_tempering: f64,
+    /// What each step matches and keeps of the rotation grid.
+    #[serde(default)]
+    pub matching: MatchingConfig,
     pub seed: u64,
+}
+
+/// What a step matches and keeps of the rotation grid (see [`crate::tracker::sparse`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MatchingConfig {
+    /// Match and keep every bin: the dense reference that the sparse step approximates.
+    pub dense: bool,
+    /// Lattice cells, the best by posterior outside the active bins, whose fine bins are
+    /// matched at each step.
+    pub refine_cells: usize,
+    /// The whole grid is matched once every this many steps, one slice per step.
+    pub slice_steps: usize,
+    /// Most active bins per track (the highest peak densities are kept).
+    pub max_active_bins: usize,
+}
+
+impl Default for MatchingConfig {
+    fn default() -> Self {
+        Self {
+            dense: false,
+            refine_cells: 48,
+            slice_steps: 30,
+            max_active_bins: 48_000,
+        }
+    }
 }
 
 fn default_view_weight_tempering() -> f64 {
@@ -129,6 +158,7 @@ impl Default for TrackerConfig {
             association_margin_rel: 0.3,
             max_tracks_per_object: 0,
             view_weight_tempering: default_view_weight_tempering(),
+            matching: MatchingConfig::default(),
             seed: 1,
         }
     }
@@ -151,6 +181,7 @@ struct Model {
     mesh: Mesh,
     codebook: Arc<Codebook>,
     tables: Arc<GridTables>,
+    lattice: Arc<Lattice>,
 }
 
 /// State of one track.
@@ -159,7 +190,7 @@ struct TrackState {
     positions: Vec<Vector3<f64>>,
     sources: Vec<usize>,
     weights: Vec<f64>,
-    hist: Vec<f32>,
+    rot: RotationState,
     /// Previous rotation estimate, in the histograms' frame.
     rotation: Option<UnitQuaternion<f64>>,
     estimate: Option<Estimate>,
@@ -168,9 +199,12 @@ struct TrackState {
     /// nearest-bin re-binning by rotations below half a bin would never move it at all);
     /// every view, the reference camera included, is pulled through its own map instead.
     reference_from_hist: Pose,
-    /// Last bin map per camera with the rotation it was built for: reused while the rotation
-    /// moves by less than [`MAP_REUSE_RAD`] (static cameras, a slowly moving mean).
-    map_cache: Vec<(String, UnitQuaternion<f64>, Arc<Vec<u32>>)>,
+    /// Per camera, the rotation of its last bin map, and the whole grid's map once that
+    /// rotation held still for two steps (static cameras, a slowly moving mean): reused while
+    /// the rotation moves by less than [`MAP_REUSE_RAD`].
+    map_cache: Vec<(String, UnitQuaternion<f64>, Option<Arc<Vec<u32>>>)>,
+    /// Position of the rotating slice of the grid matched at the next step.
+    slice_cursor: usize,
 }
 
 /// A cached bin map is reused while its rotation differs by less than this (a bin is 5 degrees).
@@ -185,7 +219,7 @@ impl TrackState {
             positions_m: &self.positions,
             sources: &self.sources,
             weights: &self.weights,
-            hist: &self.hist,
+            rot: &self.rot,
             tables,
             reference_from_hist: self.reference_from_hist,
         }
@@ -199,16 +233,16 @@ pub struct Tracker {
     camera_names: Vec<String>,
     reference: String,
     models: Vec<Model>,
-    tables: Vec<Arc<GridTables>>,
+    tables: Vec<(Arc<GridTables>, Arc<Lattice>)>,
     tracks: Vec<Track>,
     states: Vec<TrackState>,
     next_id: u64,
     rng: rand_chacha::ChaCha8Rng,
     world_from_reference: Pose,
     last_odometry: Option<RobotOdometry>,
-    /// Reusable similarity buffers, one per gated view of a step (`n x bins` f32 each).
+    /// Reusable similarity buffers, one per view of a step.
     sims: Vec<Vec<f32>>,
-    scratch: Vec<f32>,
+    blur_work: BlurWork,
     stamp_ns: i64,
 }
 
@@ -234,7 +268,7 @@ impl Tracker {
             world_from_reference,
             last_odometry: None,
             sims: Vec::new(),
-            scratch: Vec::new(),
+            blur_work: BlurWork::default(),
             stamp_ns: 0,
         }
     }
@@ -246,12 +280,13 @@ impl Tracker {
     /// Registers an object model (detections name it by `name`).
     pub fn add_object_model(&mut self, name: &str, mesh: Mesh, codebook: Arc<Codebook>) {
         let grid = codebook.grid;
-        let tables = match self.tables.iter().find(|t| t.grid == grid) {
+        let (tables, lattice) = match self.tables.iter().find(|t| t.0.grid == grid) {
             Some(t) => t.clone(),
             None => {
                 let t = Arc::new(GridTables::new(grid));
-                self.tables.push(t.clone());
-                t
+                let l = Arc::new(Lattice::new(&t));
+                self.tables.push((t.clone(), l.clone()));
+                (t, l)
             }
         };
         if let Some(mi) = self.models.iter().position(|m| m.name == name) {
@@ -266,6 +301,7 @@ impl Tracker {
             m.mesh = mesh;
             m.codebook = codebook;
             m.tables = tables;
+            m.lattice = lattice;
             self.carry_tracks_to_new_grid(carried);
             return;
         }
@@ -274,6 +310,7 @@ impl Tracker {
             mesh,
             codebook,
             tables,
+            lattice,
         });
     }
 
@@ -435,10 +472,9 @@ impl Tracker {
         let kernel = gaussian_kernel(self.config.blur_radius_bins, self.config.blur_sigma_bins);
         for s in &mut self.states {
             if s.n() > 0 {
-                let grid = self.models[s.model].tables.grid;
-                let n = s.n();
                 // the blur preserves each histogram's mass: no renormalisation needed
-                blur(&grid, &mut s.hist, n, &kernel, &mut self.scratch);
+                let tables = &self.models[s.model].tables;
+                crate::tracker::sparse::blur(&mut s.rot, tables, &kernel, &mut self.blur_work);
             }
         }
         report.timings.blur_s += t0.elapsed().as_secs_f64();
@@ -558,7 +594,7 @@ impl Tracker {
                         self.states[i].positions.clear();
                         self.states[i].sources.clear();
                         self.states[i].weights.clear();
-                        self.states[i].hist.clear();
+                        self.states[i].rot.clear();
                         self.states[i].rotation = None;
                         self.states[i].reference_from_hist = Pose::identity();
                         self.states[i].map_cache.clear();
@@ -583,11 +619,12 @@ impl Tracker {
                             positions: Vec::new(),
                             sources: Vec::new(),
                             weights: Vec::new(),
-                            hist: Vec::new(),
+                            rot: RotationState::default(),
                             rotation: None,
                             estimate: None,
                             reference_from_hist: Pose::identity(),
                             map_cache: Vec::new(),
+                            slice_cursor: 0,
                         });
                         report.tracks_created.push(id);
                         self.states.len() - 1
@@ -658,28 +695,29 @@ impl Tracker {
             .collect()
     }
 
-    /// Appends particles of camera `ci` with uniform (volume-weighted) histograms; the new
-    /// component starts with the mean weight of the existing particles.
+    /// Appends particles of camera `ci`; the new component starts with the mean weight of the
+    /// existing particles and from the track's rotation belief (the particle-weighted mixture;
+    /// uniform for a new track): a camera joining a track adds translation hypotheses, it does
+    /// not make the track forget what it knows of the rotation.
     fn add_particles(&mut self, i: usize, parts: Vec<Vector3<f64>>, ci: usize) {
-        let tables = self.models[self.states[i].model].tables.clone();
         let s = &mut self.states[i];
         let old_n = s.n();
         let new_n = old_n + parts.len();
-        let nb = tables.grid.len();
-        let mut hist = vec![0f32; nb * new_n];
-        // the new particles start from the track's rotation belief (the particle-weighted
-        // mixture histogram; uniform for a new track): a camera joining a track adds
-        // translation hypotheses, it does not make the track forget what it knows of the
-        // rotation
-        let belief = (old_n > 0).then(|| s.set(&tables).mixture());
-        hist.par_chunks_mut(new_n).enumerate().for_each(|(b, row)| {
-            if old_n > 0 {
-                row[..old_n].copy_from_slice(&s.hist[b * old_n..(b + 1) * old_n]);
-            }
-            let start = belief.as_ref().map_or(tables.volume(b), |m| m[b]);
-            row[old_n..].fill(start as f32);
-        });
-        s.hist = hist;
+        if old_n == 0 || s.rot.n_cols() == 0 {
+            s.rot = RotationState::uniform(new_n);
+        } else {
+            let cf = s.rot.column_factors(&s.weights);
+            let nc = s.rot.n_cols();
+            let cf32: Vec<f32> = cf.iter().map(|v| *v as f32).collect();
+            let belief: Vec<f32> = s
+                .rot
+                .values
+                .chunks(nc)
+                .map(|row| row.iter().zip(&cf32).map(|(v, w)| v * w).sum())
+                .collect();
+            let floor: f64 = cf.iter().zip(&s.rot.floors).map(|(w, f)| w * *f as f64).sum();
+            s.rot.append_column(&belief, floor as f32, parts.len());
+        }
         let w_new = if old_n > 0 {
             1.0 / new_n as f64
         } else {
@@ -693,295 +731,6 @@ impl Tracker {
         s.positions.extend(parts);
         normalise(&mut s.weights);
     }
-
-    fn update_track(&mut self, ti: usize, views: &[(&CameraFrame, Pose, usize)], report: &mut StepReport) {
-        let mi = self.states[ti].model;
-        let codebook = self.models[mi].codebook.clone();
-        let tables = self.models[mi].tables.clone();
-        let n = self.states[ti].n();
-        let nb = tables.grid.len();
-        let obs_cfg = self.config.observation;
-        let mut depth_log = vec![0f32; n];
-        let mut best = f32::NEG_INFINITY;
-        let mut seen_by = Vec::new();
-        let mut in_some_image = false;
-        let mean_ref = self.states[ti].set(&tables).mean_position();
-        let reference_from_hist = self.states[ti].reference_from_hist;
-        let mean_hist = reference_from_hist
-            .inverse_transform_point(&Point3::from(mean_ref))
-            .coords;
-        // every gated view's evidence, with its pull map; fused below in one pass
-        let mut evidence: Vec<(ViewEvidence, Option<Arc<Vec<u32>>>)> = Vec::new();
-        for (frame, view_from_ref, _ci) in views {
-            let positions: Vec<Vector3<f64>> = self.states[ti]
-                .positions
-                .iter()
-                .map(|p| (view_from_ref * Point3::from(*p)).coords)
-                .collect();
-            let mean_view = (view_from_ref * Point3::from(mean_ref)).coords;
-            if let Some(uv) = frame.intrinsics.project(&Point3::from(mean_view))
-                && frame.intrinsics.contains(uv)
-            {
-                in_some_image = true;
-            }
-            let img = ViewImage {
-                intrinsics: &frame.intrinsics,
-                depth: &frame.depth,
-                color: frame.color.as_ref(),
-            };
-            let mut sim = self.sims.pop().unwrap_or_default();
-            let ev = observe_view(&codebook, &img, &positions, &obs_cfg, &mut sim);
-            let Some(ev) = ev else {
-                self.sims.push(sim);
-                continue;
-            };
-            report.timings.crops_s += ev.crops_s;
-            report.timings.encoding_s += ev.encoding_s;
-            report.timings.matching_s += ev.matching_s;
-            report.timings.likelihoods_s += ev.likelihoods_s;
-            let t0 = Instant::now();
-            best = best.max(ev.best_similarity);
-            seen_by.push(frame.camera.clone());
-            // histogram bin b (frame H) reads this view's bin map[b]
-            let q = crate::geometry::ray_rotation(&mean_view).inverse()
-                * view_from_ref.rotation
-                * reference_from_hist.rotation
-                * crate::geometry::ray_rotation(&mean_hist);
-            let map = if q.angle() < 1e-9 {
-                None
-            } else {
-                let cache = &mut self.states[ti].map_cache;
-                let cached = cache
-                    .iter()
-                    .find(|(c, cq, _)| c == &frame.camera && cq.angle_to(&q) < MAP_REUSE_RAD)
-                    .map(|(_, _, m)| m.clone());
-                Some(match cached {
-                    Some(m) => m,
-                    None => {
-                        let m = Arc::new(tables.pull_map(&q));
-                        cache.retain(|(c, _, _)| c != &frame.camera);
-                        cache.push((frame.camera.clone(), q, m.clone()));
-                        m
-                    }
-                })
-            };
-            for (d, l) in depth_log.iter_mut().zip(&ev.depth_log) {
-                *d += l;
-            }
-            evidence.push((ev, map));
-            report.timings.fusion_s += t0.elapsed().as_secs_f64();
-        }
-        let t0 = Instant::now();
-        let track = &mut self.tracks[ti];
-        track.stamp_ns = self.stamp_ns;
-        track.seen_by = seen_by.clone();
-        track.best_similarity = best.is_finite().then_some(best as f64);
-        let had_evidence = !seen_by.is_empty();
-        let mut pending_scale: Option<Vec<f32>> = None;
-        if had_evidence {
-            let s = &mut self.states[ti];
-            let fused_views: Vec<FusedView> = evidence
-                .iter()
-                .map(|(ev, m)| (ev, m.as_ref().map(|m| m.as_slice())))
-                .collect();
-            // per particle max of the fused log-likelihood, for exp's range; with floored views
-            // the sum cannot go below `floor * views` (exp of that is well inside f32), so the
-            // pass is skipped and 0 (the largest possible value) used
-            let worst = obs_cfg.loglik_floor * seen_by.len() as f32;
-            let fmax = if worst > -80.0 {
-                vec![0f32; n]
-            } else {
-                fused_loglik_max(&fused_views, n, nb)
-            };
-            // prior times every view's likelihood, and the marginals, in one pass over the bins
-            let sums = fuse_update(
-                &mut s.hist,
-                &fused_views,
-                n,
-                &tables,
-                self.config.prior_floor_rel as f32,
-                &fmax,
-            );
-            // new log weights: old + (log marginal (Eq. 7) + depth term) tempered by the number
-            // of views (see `TrackerConfig::view_weight_tempering`)
-            let alpha = weight_exponent(seen_by.len(), self.config.view_weight_tempering);
-            let mut logw: Vec<f64> = (0..n)
-                .map(|p| {
-                    s.weights[p].max(1e-300).ln()
-                        + alpha * (sums[p].max(1e-300).ln() + fmax[p] as f64 + depth_log[p] as f64)
-                })
-                .collect();
-            let m = logw.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
-            for v in &mut logw {
-                *v = (*v - m).exp();
-            }
-            s.weights = logw;
-            normalise(&mut s.weights);
-            // each histogram's normalisation is applied lazily: in the estimate's mixture
-            // and in the resampling gather (one pass over all bins less)
-            pending_scale = Some(
-                sums.iter()
-                    .map(|v| if *v > 0.0 { (1.0 / v) as f32 } else { 0.0 })
-                    .collect(),
-            );
-        }
-        // the similarity buffers go back to the pool for the next view, track and step
-        self.sims.extend(evidence.into_iter().map(|(ev, _)| ev.sim));
-        report.timings.fusion_s += t0.elapsed().as_secs_f64();
-        // component floor
-        floor_components(&mut self.states[ti], self.config.min_component_weight);
-
-        // status
-        let track = &mut self.tracks[ti];
-        if had_evidence && best >= self.config.lost_similarity {
-            track.weak_steps = 0;
-            if track.status == TrackStatus::Initialising {
-                track.status = TrackStatus::Tracking;
-            }
-        } else if in_some_image {
-            track.weak_steps += 1;
-            if track.weak_steps >= self.config.lost_after_steps && track.status != TrackStatus::Lost {
-                track.status = TrackStatus::Lost;
-                report.tracks_lost.push(track.id);
-            }
-        }
-
-        // estimates
-        let t0 = Instant::now();
-        self.refresh_estimate(ti, pending_scale.as_deref());
-        report.timings.estimates_s += t0.elapsed().as_secs_f64();
-
-        // resampling within components
-        if had_evidence {
-            let t0 = Instant::now();
-            self.resample(ti, pending_scale.as_deref());
-            report.timings.resampling_s += t0.elapsed().as_secs_f64();
-        }
-    }
-
-    /// Recomputes a track's estimate from its particles (`scale`: each histogram's pending
-    /// normalisation, see `update_track`).
-    fn refresh_estimate(&mut self, ti: usize, pending_scale: Option<&[f32]>) {
-        let tables = self.models[self.states[ti].model].tables.clone();
-        let status = self.tracks[ti].status;
-        let est = {
-            let s = &self.states[ti];
-            let set = s.set(&tables);
-            let mean = set.mean_position();
-            let mean_hist = s
-                .reference_from_hist
-                .inverse_transform_point(&Point3::from(mean))
-                .coords;
-            let (tcov, tstd) = set.translation_covariance();
-            let mixture = match pending_scale {
-                Some(scale) => {
-                    let w: Vec<f64> = s.weights.iter().zip(scale).map(|(w, k)| w * *k as f64).collect();
-                    set.mixture_with(&w)
-                }
-                None => set.mixture(),
-            };
-            let mut summary = summarise_rotation(
-                &tables.grid,
-                &mixture,
-                &mean_hist,
-                s.rotation.as_ref(),
-                &self.config.estimate,
-            );
-            let rotation_hist = summary.rotation;
-            let to_ref = s.reference_from_hist.rotation;
-            summary.rotation = to_ref * rotation_hist;
-            for m in &mut summary.modes {
-                let q = to_ref
-                    * UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
-                        m.rotation_xyzw[3],
-                        m.rotation_xyzw[0],
-                        m.rotation_xyzw[1],
-                        m.rotation_xyzw[2],
-                    ));
-                let v = q.quaternion();
-                m.rotation_xyzw = [v.i, v.j, v.k, v.w];
-            }
-            let mut cov6 = [[0.0; 6]; 6];
-            for r in 0..3 {
-                for c in 0..3 {
-                    cov6[r][c] = tcov[(r, c)];
-                    cov6[r + 3][c + 3] = summary.covariance[(r, c)];
-                }
-            }
-            let est = Estimate {
-                reference_from_object: Pose::from_parts(nalgebra::Translation3::from(mean), summary.rotation),
-                translation_std_m: tstd,
-                components: set.components(&self.camera_names),
-                rotation_modes: summary.modes,
-                rotation_entropy: summary.entropy,
-                covariance_6x6: cov6,
-                status,
-                stamp_ns: self.stamp_ns,
-            };
-            (est, rotation_hist)
-        };
-        self.states[ti].rotation = Some(est.1);
-        self.states[ti].estimate = Some(est.0);
-    }
-
-    /// Systematic resampling inside each source camera's component: the component keeps its
-    /// particle count and its weight (spread evenly over its new particles).
-    fn resample(&mut self, ti: usize, scale: Option<&[f32]>) {
-        let s = &mut self.states[ti];
-        let n = s.n();
-        let mut src_idx: Vec<usize> = Vec::with_capacity(n);
-        let mut new_w: Vec<f64> = Vec::with_capacity(n);
-        let mut cams: Vec<usize> = s.sources.clone();
-        cams.sort_unstable();
-        cams.dedup();
-        let mut new_sources = Vec::with_capacity(n);
-        for c in cams {
-            let idx: Vec<usize> = (0..n).filter(|&i| s.sources[i] == c).collect();
-            let wc: f64 = idx.iter().map(|&i| s.weights[i]).sum();
-            let m = idx.len();
-            let u0 = self.rng.random::<f64>() / m as f64;
-            let mut acc = 0.0;
-            let mut j = 0;
-            for k in 0..m {
-                let u = (u0 + k as f64 / m as f64) * wc;
-                while j + 1 < m && acc + s.weights[idx[j]] < u {
-                    acc += s.weights[idx[j]];
-                    j += 1;
-                }
-                src_idx.push(idx[j]);
-                new_w.push(wc / m as f64);
-                new_sources.push(c);
-            }
-        }
-        let positions: Vec<Vector3<f64>> = src_idx.iter().map(|&i| s.positions[i]).collect();
-        // each new particle's histogram: its source's, times the source's normalisation
-        let new_scale: Vec<f32> = src_idx.iter().map(|&i| scale.map_or(1.0, |k| k[i])).collect();
-        resample_histograms(&mut self.scratch, &s.hist, &src_idx, &new_scale);
-        std::mem::swap(&mut self.scratch, &mut s.hist);
-        s.positions = positions;
-        s.weights = new_w;
-        s.sources = new_sources;
-        normalise(&mut s.weights);
-    }
-}
-
-/// `dst[b][j] = src[b][src_idx[j]] * scale[j]` for every bin `b` (bin-major, `src_idx.len()`
-/// particles per bin in both), in chunks of 1,024 bins over all threads.
-fn resample_histograms(dst: &mut Vec<f32>, src: &[f32], src_idx: &[usize], scale: &[f32]) {
-    let n = src_idx.len();
-    dst.resize(src.len(), 0.0);
-    if n == 0 {
-        return;
-    }
-    dst.par_chunks_mut(n * 1024)
-        .zip(src.par_chunks(n * 1024))
-        .for_each(|(dc, sc)| {
-            for (drow, srow) in dc.chunks_mut(n).zip(sc.chunks(n)) {
-                for ((d, &i), &k) in drow.iter_mut().zip(src_idx).zip(scale) {
-                    *d = srow[i] * k;
-                }
-            }
-        });
 }
 
 fn normalise(w: &mut [f64]) {
@@ -1034,33 +783,18 @@ mod tests {
     }
 
     #[test]
-    fn resampled_histograms_are_the_scaled_sources() {
-        let (n, nb) = (5, 2100);
-        let src: Vec<f32> = (0..n * nb).map(|i| (i % 97) as f32 * 0.5).collect();
-        let idx = vec![4, 0, 0, 2, 4];
-        let scale = vec![2.0, 1.0, 0.5, 3.0, 2.0];
-        let mut dst = Vec::new();
-        resample_histograms(&mut dst, &src, &idx, &scale);
-        assert_eq!(dst.len(), src.len());
-        for b in 0..nb {
-            for j in 0..n {
-                assert_eq!(dst[b * n + j], src[b * n + idx[j]] * scale[j], "bin {b}, particle {j}");
-            }
-        }
-    }
-
-    #[test]
     fn component_floor_keeps_every_camera_alive() {
         let mut s = TrackState {
             model: 0,
             positions: vec![Vector3::zeros(); 4],
             sources: vec![0, 0, 1, 1],
             weights: vec![0.5, 0.5, 1e-9, 1e-9],
-            hist: vec![],
+            rot: RotationState::default(),
             rotation: None,
             estimate: None,
             reference_from_hist: Pose::identity(),
             map_cache: vec![],
+            slice_cursor: 0,
         };
         floor_components(&mut s, 0.05);
         let w1: f64 = s.weights[2] + s.weights[3];

@@ -50,6 +50,7 @@ pub mod estimate;
 pub mod filter;
 pub mod motion;
 pub mod observation;
+pub mod sparse;
 
 use crate::geometry::Pose;
 use serde::{Deserialize, Serialize};
@@ -162,6 +163,12 @@ pub struct StepReport {
     pub tracks_reinitialised: Vec<u64>,
     pub tracks_lost: Vec<u64>,
     pub timings: StageTimings,
+    /// Bins matched in this step, summed over tracks and views' shared set.
+    #[serde(default)]
+    pub matched_bins: usize,
+    /// Active bins after this step, summed over tracks.
+    #[serde(default)]
+    pub active_bins: usize,
 }
 
 /// Seconds spent per stage in one step (summed over objects).

@@ -201,9 +201,72 @@ pub fn match_codes(codebook: &Codebook, codes: &[f32], n: usize, out: &mut Vec<f
     crate::tracker::bins::match_best(codes, &codebook.codes, n, codebook.code_dim(), out)
 }
 
-/// The evidence of one view for particles at `positions_in_view_m`, or `None` when the view
-/// does not see the object (no usable crop, or best similarity below the gate). `sim` is a
-/// reusable buffer (it holds the log-likelihood afterwards, moved into the result).
+/// The evidence of one view from its particles' similarities (`sim`, `rows x n`, moved into
+/// the result), each particle's best similarity `best_per_particle` and the codebook bin where
+/// it is reached (`arg`, `u32::MAX`: none), or `None` when the view does not see the object
+/// (no usable crop, or best similarity below the gate). `c_max` is the best similarity over
+/// the valid particles and the matched bins.
+#[allow(clippy::too_many_arguments)]
+pub fn view_evidence(
+    codebook: &Codebook,
+    sim: &mut Vec<f32>,
+    best_per_particle: &[f32],
+    arg: &[u32],
+    valid: &[bool],
+    central_depth: &[f32],
+    positions_in_view_m: &[Vector3<f64>],
+    config: &ObservationConfig,
+) -> Option<ViewEvidence> {
+    let n = positions_in_view_m.len();
+    let best = best_per_particle
+        .iter()
+        .zip(valid)
+        .filter(|(_, v)| **v)
+        .map(|(b, _)| *b)
+        .fold(f32::NEG_INFINITY, f32::max);
+    if best.is_nan() || best < config.gate_similarity {
+        return None;
+    }
+    let strength = evidence_strength(best, config);
+    // per particle 1 / c_max; 0 for unusable crops, whose r = 1 then lands on the floor
+    let inv_best: Vec<f32> = valid.iter().map(|v| if *v { 1.0 / best } else { 0.0 }).collect();
+    // depth check (PoseRBPF renders at the mean pose; we compare the crop's central surface
+    // depth with that of the particle's best template): error (m) = (observed - template) * box
+    let n_inplane = codebook.grid.n_inplane();
+    let box_m = codebook.box_m() as f32;
+    let depth_log: Vec<f32> = (0..n)
+        .map(|p| {
+            if !valid[p] || arg[p] == u32::MAX {
+                return config.depth_floor;
+            }
+            let tmpl = codebook.median_depth_norm[arg[p] as usize / n_inplane];
+            let obs = central_depth[p];
+            if !obs.is_finite() || !tmpl.is_finite() {
+                return config.depth_floor;
+            }
+            let err_m = (obs - tmpl) * box_m;
+            let sigma = config.depth_sigma_m * (positions_in_view_m[p].z as f32).max(0.3);
+            (-0.5 * err_m * err_m / (sigma * sigma)).max(config.depth_floor)
+        })
+        .collect();
+    Some(ViewEvidence {
+        sim: std::mem::take(sim),
+        inv_best,
+        k: -0.5 / (config.sigma * config.sigma) * strength,
+        floor: config.loglik_floor * strength,
+        depth_log,
+        best_similarity: best,
+        valid: valid.to_vec(),
+        crops_s: 0.0,
+        encoding_s: 0.0,
+        matching_s: 0.0,
+        likelihoods_s: 0.0,
+    })
+}
+
+/// The evidence of one view for particles at `positions_in_view_m` against every bin of the
+/// codebook (the dense matching), or `None` when the view does not see the object. `sim` is
+/// a reusable buffer (moved into the result).
 pub fn observe_view(
     codebook: &Codebook,
     view: &ViewImage,
@@ -220,53 +283,12 @@ pub fn observe_view(
     let (mx, arg) = match_codes(codebook, &codes, n, sim);
     let matching_s = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
-    let best = mx
-        .iter()
-        .zip(&valid)
-        .filter(|(_, v)| **v)
-        .map(|(b, _)| *b)
-        .fold(f32::NEG_INFINITY, f32::max);
-    if best.is_nan() || best < config.gate_similarity {
-        return None;
-    }
-    let strength = evidence_strength(best, config);
-    // each particle's best bin (0 when none: a crop of zeros)
-    let arg: Vec<usize> = arg
-        .into_iter()
-        .map(|a| if a == u32::MAX { 0 } else { a as usize })
-        .collect();
-    // per particle 1 / c_max; 0 for unusable crops, whose r = 1 then lands on the floor
-    let inv_best: Vec<f32> = valid.iter().map(|v| if *v { 1.0 / best } else { 0.0 }).collect();
-    // depth check (PoseRBPF renders at the mean pose; we compare the crop's central surface
-    // depth with that of the particle's best template): error (m) = (observed - template) * box
-    let n_inplane = codebook.grid.n_inplane();
-    let box_m = codebook.box_m() as f32;
-    let depth_log: Vec<f32> = (0..n)
-        .map(|p| {
-            let tmpl = codebook.median_depth_norm[arg[p] / n_inplane];
-            let obs = score[p];
-            if !valid[p] || !obs.is_finite() || !tmpl.is_finite() {
-                return config.depth_floor;
-            }
-            let err_m = (obs - tmpl) * box_m;
-            let sigma = config.depth_sigma_m * (positions_in_view_m[p].z as f32).max(0.3);
-            (-0.5 * err_m * err_m / (sigma * sigma)).max(config.depth_floor)
-        })
-        .collect();
-    let likelihoods_s = t1.elapsed().as_secs_f64();
-    Some(ViewEvidence {
-        sim: std::mem::take(sim),
-        inv_best,
-        k: -0.5 / (config.sigma * config.sigma) * strength,
-        floor: config.loglik_floor * strength,
-        depth_log,
-        best_similarity: best,
-        valid,
-        crops_s,
-        encoding_s,
-        matching_s,
-        likelihoods_s,
-    })
+    let mut ev = view_evidence(codebook, sim, &mx, &arg, &valid, &score, positions_in_view_m, config)?;
+    ev.crops_s = crops_s;
+    ev.encoding_s = encoding_s;
+    ev.matching_s = matching_s;
+    ev.likelihoods_s = t1.elapsed().as_secs_f64();
+    Some(ev)
 }
 
 /// The log-likelihood one view gives a bin, from the cosine similarity `c` of the particle's

@@ -23,6 +23,8 @@
 
 use super::{TrackState, Tracker};
 use crate::geometry::{Pose, ray_rotation};
+use crate::tracker::bins::GridTables;
+use crate::tracker::sparse::RotationState;
 use crate::tracker::{RobotOdometry, Track, TrackStatus, TrackerError};
 use nalgebra::{UnitQuaternion, Vector3};
 use rand_distr::{Distribution, Normal};
@@ -156,6 +158,7 @@ impl Tracker {
         });
         let state = state_from_column(
             mi,
+            &tables,
             positions,
             vec![ci; n],
             vec![1.0 / n as f64; n],
@@ -165,7 +168,7 @@ impl Tracker {
         );
         self.states.push(state);
         let ti = self.states.len() - 1;
-        self.refresh_estimate(ti, None);
+        self.refresh_estimate(ti);
         Ok(id)
     }
 
@@ -184,7 +187,7 @@ impl Tracker {
                     st.positions.clear();
                     st.sources.clear();
                     st.weights.clear();
-                    st.hist.clear();
+                    st.rot.clear();
                     st.map_cache.clear();
                 }
                 failed.push(t.track.id);
@@ -335,6 +338,7 @@ impl Tracker {
             .map(|q| UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[3], q[0], q[1], q[2])));
         let mut state = state_from_column(
             mi,
+            &tables,
             positions,
             sources,
             t.weights.clone(),
@@ -355,7 +359,7 @@ impl Tracker {
         }
         self.next_id = self.next_id.max(t.track.id + 1);
         let ti = self.index_of(t.track.id).unwrap_or(self.states.len() - 1);
-        self.refresh_estimate(ti, None);
+        self.refresh_estimate(ti);
         Ok(())
     }
 }
@@ -363,6 +367,7 @@ impl Tracker {
 /// A track state whose particles all carry `column` (normalised) as their histogram.
 fn state_from_column(
     model: usize,
+    tables: &GridTables,
     positions: Vec<Vector3<f64>>,
     sources: Vec<usize>,
     weights: Vec<f64>,
@@ -370,23 +375,17 @@ fn state_from_column(
     reference_from_hist: Pose,
     rotation: Option<UnitQuaternion<f64>>,
 ) -> TrackState {
-    use rayon::prelude::*;
     let n = positions.len();
-    let total: f32 = column.iter().sum();
-    let inv = if total > 0.0 { 1.0 / total } else { 0.0 };
-    let mut hist = vec![0f32; column.len() * n];
-    hist.par_chunks_mut(n)
-        .zip(column.par_iter())
-        .for_each(|(row, v)| row.fill(v * inv));
     TrackState {
         model,
         positions,
         sources,
         weights,
-        hist,
+        rot: RotationState::from_column(tables, column, n),
         rotation,
         estimate: None,
         reference_from_hist,
         map_cache: Vec::new(),
+        slice_cursor: 0,
     }
 }

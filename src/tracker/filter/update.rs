@@ -1,0 +1,683 @@
+//! The measurement update of one track: crops and codes per view, the coarse-to-fine matched
+//! set (see [`crate::tracker::sparse`]), the fused update of the histograms and the weights,
+//! estimates and resampling.
+
+use super::{MAP_REUSE_RAD, Tracker, normalise, weight_exponent};
+use crate::geometry::Pose;
+use crate::tracker::observation::{ViewEvidence, ViewImage, encode_particles, view_evidence};
+use crate::tracker::sparse::{Lattice, RotationState, fused_max, fused_row, fused_update, map_bins, match_rows};
+use crate::tracker::{CameraFrame, StepReport, TrackStatus};
+use nalgebra::{Point3, UnitQuaternion, Vector3};
+use rayon::prelude::*;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// One view's codes of a track's particles, with what the update needs of the view.
+struct Encoded {
+    camera: String,
+    codes: Vec<f32>,
+    valid: Vec<bool>,
+    central_depth: Vec<f32>,
+    positions_in_view_m: Vec<Vector3<f64>>,
+    /// Histogram bin `b` (frame H) reads the view's codebook bin `bin(q * R_b)`.
+    q: UnitQuaternion<f64>,
+    /// The whole grid's map, when cached.
+    dense_map: Option<Arc<Vec<u32>>>,
+}
+
+/// Sorted union of the sorted lists `a`, `b` and the range `slice` (wrapping at `nb`); with
+/// each output's slot in `a` (`u32::MAX`: none) and the output index of each element of `b`.
+fn merge(a: &[u32], b: &[u32], slice: (usize, usize), nb: usize) -> (Vec<u32>, Vec<u32>, Vec<u32>) {
+    let (s0, len) = slice;
+    let len = len.min(nb);
+    let ranges: Vec<(usize, usize)> = if len == 0 {
+        Vec::new()
+    } else if s0 + len <= nb {
+        vec![(s0, s0 + len)]
+    } else {
+        vec![(0, s0 + len - nb), (s0, nb)]
+    };
+    let next_slice = |x: usize| -> Option<usize> {
+        ranges
+            .iter()
+            .filter_map(|(lo, hi)| {
+                let c = x.max(*lo);
+                (c < *hi).then_some(c)
+            })
+            .min()
+    };
+    let mut out = Vec::with_capacity(a.len() + b.len() + len);
+    let mut slots = Vec::with_capacity(out.capacity());
+    let mut b_index = vec![0u32; b.len()];
+    let (mut i, mut j) = (0, 0);
+    let mut x = 0usize;
+    loop {
+        let ca = a.get(i).map(|v| *v as usize);
+        let cb = b.get(j).map(|v| *v as usize);
+        let cs = next_slice(x);
+        let Some(m) = [ca, cb, cs].into_iter().flatten().min() else {
+            break;
+        };
+        let slot = if ca == Some(m) {
+            i += 1;
+            (i - 1) as u32
+        } else {
+            u32::MAX
+        };
+        if cb == Some(m) {
+            b_index[j] = out.len() as u32;
+            j += 1;
+        }
+        out.push(m as u32);
+        slots.push(slot);
+        x = m + 1;
+    }
+    (out, slots, b_index)
+}
+
+impl Tracker {
+    /// The update of track `ti` with this step's views (see the module docs).
+    pub(super) fn update_track(&mut self, ti: usize, views: &[(&CameraFrame, Pose, usize)], report: &mut StepReport) {
+        let mi = self.states[ti].model;
+        let codebook = self.models[mi].codebook.clone();
+        let tables = self.models[mi].tables.clone();
+        let lattice = self.models[mi].lattice.clone();
+        let n = self.states[ti].n();
+        let nb = tables.grid.len();
+        let kd = codebook.code_dim();
+        let obs_cfg = self.config.observation;
+        let matching = self.config.matching;
+        let mean_ref = self.states[ti].set(&tables).mean_position();
+        let reference_from_hist = self.states[ti].reference_from_hist;
+        let mean_hist = reference_from_hist
+            .inverse_transform_point(&Point3::from(mean_ref))
+            .coords;
+        let mut in_some_image = false;
+
+        // 1. crops and codes of every view that has a usable crop
+        let mut encoded: Vec<Encoded> = Vec::new();
+        for (frame, view_from_ref, _ci) in views {
+            let positions: Vec<Vector3<f64>> = self.states[ti]
+                .positions
+                .iter()
+                .map(|p| (view_from_ref * Point3::from(*p)).coords)
+                .collect();
+            let mean_view = (view_from_ref * Point3::from(mean_ref)).coords;
+            if let Some(uv) = frame.intrinsics.project(&Point3::from(mean_view))
+                && frame.intrinsics.contains(uv)
+            {
+                in_some_image = true;
+            }
+            let img = ViewImage {
+                intrinsics: &frame.intrinsics,
+                depth: &frame.depth,
+                color: frame.color.as_ref(),
+            };
+            let (codes, valid, central_depth, crops_s, encoding_s) = encode_particles(&codebook, &img, &positions);
+            report.timings.crops_s += crops_s;
+            report.timings.encoding_s += encoding_s;
+            if !valid.iter().any(|v| *v) {
+                continue;
+            }
+            let q = crate::geometry::ray_rotation(&mean_view).inverse()
+                * view_from_ref.rotation
+                * reference_from_hist.rotation
+                * crate::geometry::ray_rotation(&mean_hist);
+            encoded.push(Encoded {
+                camera: frame.camera.clone(),
+                codes,
+                valid,
+                central_depth,
+                positions_in_view_m: positions,
+                q,
+                dense_map: None,
+            });
+        }
+
+        // 2. the matched set: lattice, active bins, this step's slice (or every bin)
+        let t0 = Instant::now();
+        let slice = if matching.dense {
+            (0, nb)
+        } else {
+            let len = nb.div_ceil(matching.slice_steps.max(1));
+            let s = &mut self.states[ti];
+            let start = s.slice_cursor % nb;
+            s.slice_cursor = (start + len) % nb;
+            (start, len)
+        };
+        let (mut bins, mut slots, lattice_rows) = merge(&self.states[ti].rot.active, &lattice.points, slice, nb);
+        // bin maps: a cached whole-grid map where the camera's rotation held still
+        for e in &mut encoded {
+            e.dense_map = self.cached_map(ti, &e.camera, &e.q, matching.dense, &tables);
+        }
+        let map_of = |e: &Encoded, bins: &[u32]| -> Vec<u32> {
+            match &e.dense_map {
+                Some(m) => bins.iter().map(|b| m[*b as usize]).collect(),
+                None if e.q.angle() < 1e-9 => bins.to_vec(),
+                None => map_bins(&tables, &e.q, bins),
+            }
+        };
+        let mut maps: Vec<Vec<u32>> = encoded.iter().map(|e| map_of(e, &bins)).collect();
+        report.timings.fusion_s += t0.elapsed().as_secs_f64();
+
+        // 3. similarities on the matched set
+        let t0 = Instant::now();
+        let mut sims: Vec<Vec<f32>> = Vec::with_capacity(encoded.len());
+        let mut best: Vec<(Vec<f32>, Vec<u32>)> = Vec::with_capacity(encoded.len());
+        for (e, map) in encoded.iter().zip(&maps) {
+            let mut sim = self.sims.pop().unwrap_or_default();
+            best.push(match_rows(&e.codes, &codebook.codes, n, kd, map, &mut sim));
+            sims.push(sim);
+        }
+        report.timings.matching_s += t0.elapsed().as_secs_f64();
+
+        // 4. refinement: the fine bins of the best lattice cells not yet matched
+        if !matching.dense && matching.refine_cells > 0 && !encoded.is_empty() {
+            let t0 = Instant::now();
+            let provisional: Vec<ViewEvidence> = encoded
+                .iter()
+                .zip(&best)
+                .zip(sims.iter_mut())
+                .filter_map(|((e, (mx, arg)), sim)| {
+                    let mut copy = std::mem::take(sim);
+                    let ev = view_evidence(
+                        &codebook,
+                        &mut copy,
+                        mx,
+                        arg,
+                        &e.valid,
+                        &e.central_depth,
+                        &e.positions_in_view_m,
+                        &obs_cfg,
+                    );
+                    match ev {
+                        Some(ev) => Some(ev),
+                        None => {
+                            *sim = copy;
+                            None
+                        }
+                    }
+                })
+                .collect();
+            let refine = if provisional.is_empty() {
+                Vec::new()
+            } else {
+                let refs: Vec<&ViewEvidence> = provisional.iter().collect();
+                let s = &self.states[ti];
+                refine_bins(
+                    &lattice,
+                    &refs,
+                    &lattice_rows,
+                    &bins,
+                    &slots,
+                    &s.rot,
+                    &tables,
+                    n,
+                    &matching,
+                )
+            };
+            // the similarities go back to their views (in the same order as the evidence)
+            let mut it = provisional.into_iter();
+            for sim in sims.iter_mut() {
+                if sim.is_empty()
+                    && let Some(ev) = it.next()
+                {
+                    *sim = ev.sim;
+                }
+            }
+            report.timings.fusion_s += t0.elapsed().as_secs_f64();
+            if !refine.is_empty() {
+                let t0 = Instant::now();
+                let first = bins.len();
+                bins.extend_from_slice(&refine);
+                slots.extend(std::iter::repeat_n(u32::MAX, refine.len()));
+                for (k, e) in encoded.iter().enumerate() {
+                    let extra = map_of(e, &refine);
+                    let mut more = Vec::new();
+                    let (mx, arg) = match_rows(&e.codes, &codebook.codes, n, kd, &extra, &mut more);
+                    sims[k].extend_from_slice(&more);
+                    maps[k].extend(extra);
+                    for p in 0..n {
+                        if mx[p] > best[k].0[p] {
+                            best[k].0[p] = mx[p];
+                            best[k].1[p] = arg[p];
+                        }
+                    }
+                    debug_assert_eq!(sims[k].len(), (first + refine.len()) * n);
+                }
+                report.timings.matching_s += t0.elapsed().as_secs_f64();
+            }
+        }
+        report.matched_bins += bins.len();
+
+        // 5. each view's evidence (gate, strength, c_max over the matched bins, depth check)
+        let t0 = Instant::now();
+        let mut evidence: Vec<ViewEvidence> = Vec::new();
+        let mut seen_by = Vec::new();
+        let mut best_sim = f32::NEG_INFINITY;
+        let mut depth_log = vec![0f32; n];
+        for ((e, (mx, arg)), mut sim) in encoded.iter().zip(&best).zip(sims) {
+            match view_evidence(
+                &codebook,
+                &mut sim,
+                mx,
+                arg,
+                &e.valid,
+                &e.central_depth,
+                &e.positions_in_view_m,
+                &obs_cfg,
+            ) {
+                Some(ev) => {
+                    best_sim = best_sim.max(ev.best_similarity);
+                    seen_by.push(e.camera.clone());
+                    for (d, l) in depth_log.iter_mut().zip(&ev.depth_log) {
+                        *d += l;
+                    }
+                    evidence.push(ev);
+                }
+                None => self.sims.push(sim),
+            }
+        }
+        report.timings.likelihoods_s += t0.elapsed().as_secs_f64();
+
+        let t0 = Instant::now();
+        let track = &mut self.tracks[ti];
+        track.stamp_ns = self.stamp_ns;
+        track.seen_by = seen_by.clone();
+        track.best_similarity = best_sim.is_finite().then_some(best_sim as f64);
+        let had_evidence = !evidence.is_empty();
+        if had_evidence {
+            let refs: Vec<&ViewEvidence> = evidence.iter().collect();
+            // per particle max of the fused log-likelihood, for exp's range; with floored views
+            // the sum cannot go below `floor * views` (exp of that is well inside f32), so the
+            // pass is skipped and 0 (the largest possible value) used
+            let worst = obs_cfg.loglik_floor * refs.len() as f32;
+            let fmax = if worst > -80.0 {
+                vec![0f32; n]
+            } else {
+                fused_max(&refs, bins.len(), n)
+            };
+            let floor_rel = self.config.prior_floor_rel as f32;
+            let s = &self.states[ti];
+            let (mut post, sums) = fused_update(&bins, &slots, &refs, &s.rot, &tables, floor_rel, &fmax);
+            // the bins left out: each at its lattice cell's likelihood, on the prior's floor
+            let unmatched = if matching.dense {
+                (vec![0.0; n], 0.0)
+            } else {
+                unmatched_mass(&lattice, &refs, &lattice_rows, &bins, &s.rot, &tables, floor_rel, &fmax)
+            };
+            let v_unmatched = unmatched.1;
+            let unmatched = unmatched.0;
+            let marginal: Vec<f64> = sums.iter().zip(&unmatched).map(|(a, b)| a + b).collect();
+            // new log weights: old + (log marginal (Eq. 7) + depth term) tempered by the number
+            // of views (see `TrackerConfig::view_weight_tempering`)
+            let alpha = weight_exponent(seen_by.len(), self.config.view_weight_tempering);
+            let s = &mut self.states[ti];
+            let mut logw: Vec<f64> = (0..n)
+                .map(|p| {
+                    s.weights[p].max(1e-300).ln()
+                        + alpha * (marginal[p].max(1e-300).ln() + fmax[p] as f64 + depth_log[p] as f64)
+                })
+                .collect();
+            let m = logw.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+            for v in &mut logw {
+                *v = (*v - m).exp();
+            }
+            s.weights = logw;
+            normalise(&mut s.weights);
+            // the posterior: the matched bins, and the unmatched mass spread as the new floor
+            let inv: Vec<f32> = marginal
+                .iter()
+                .map(|v| if *v > 0.0 { (1.0 / v) as f32 } else { 0.0 })
+                .collect();
+            post.par_chunks_mut(n).for_each(|row| {
+                for (v, k) in row.iter_mut().zip(&inv) {
+                    *v *= k;
+                }
+            });
+            let floors: Vec<f32> = unmatched
+                .iter()
+                .zip(&marginal)
+                .map(|(u, m)| {
+                    if v_unmatched > 0.0 && *m > 0.0 {
+                        (u / (m * v_unmatched)) as f32
+                    } else {
+                        0.0
+                    }
+                })
+                .collect();
+            s.rot = RotationState {
+                active: bins,
+                values: post,
+                floors,
+                column_of: (0..n as u32).collect(),
+            };
+        }
+        // the similarity buffers go back to the pool for the next view, track and step
+        self.sims.extend(evidence.into_iter().map(|ev| ev.sim));
+        report.timings.fusion_s += t0.elapsed().as_secs_f64();
+        super::floor_components(&mut self.states[ti], self.config.min_component_weight);
+
+        // status
+        let track = &mut self.tracks[ti];
+        if had_evidence && best_sim >= self.config.lost_similarity {
+            track.weak_steps = 0;
+            if track.status == TrackStatus::Initialising {
+                track.status = TrackStatus::Tracking;
+            }
+        } else if in_some_image {
+            track.weak_steps += 1;
+            if track.weak_steps >= self.config.lost_after_steps && track.status != TrackStatus::Lost {
+                track.status = TrackStatus::Lost;
+                report.tracks_lost.push(track.id);
+            }
+        }
+
+        // estimates
+        let t0 = Instant::now();
+        self.refresh_estimate(ti);
+        report.timings.estimates_s += t0.elapsed().as_secs_f64();
+
+        // resampling within components, then the bins that went back to the floor
+        let t0 = Instant::now();
+        if had_evidence {
+            self.resample(ti);
+        }
+        if !matching.dense {
+            let floor_rel = self.config.prior_floor_rel as f32;
+            self.states[ti].rot.prune(&tables, floor_rel, matching.max_active_bins);
+        } else if had_evidence {
+            // the dense reference keeps every bin, in order
+            let s = &mut self.states[ti];
+            sort_active(&mut s.rot);
+        }
+        report.active_bins += self.states[ti].rot.active.len();
+        report.timings.resampling_s += t0.elapsed().as_secs_f64();
+    }
+
+    /// The whole-grid bin map of `camera` for rotation `q` when it is cached or its rotation
+    /// held still since the last step (then built and cached); `None`: map the bins needed.
+    fn cached_map(
+        &mut self,
+        ti: usize,
+        camera: &str,
+        q: &UnitQuaternion<f64>,
+        dense: bool,
+        tables: &crate::tracker::bins::GridTables,
+    ) -> Option<Arc<Vec<u32>>> {
+        if q.angle() < 1e-9 {
+            return None;
+        }
+        let cache = &mut self.states[ti].map_cache;
+        let entry = cache.iter_mut().find(|(c, _, _)| c == camera);
+        match entry {
+            Some((_, cq, map)) if cq.angle_to(q) < MAP_REUSE_RAD => {
+                if map.is_none() {
+                    *map = Some(Arc::new(tables.pull_map(cq)));
+                }
+                map.clone()
+            }
+            Some((_, cq, map)) => {
+                *cq = *q;
+                *map = dense.then(|| Arc::new(tables.pull_map(q)));
+                map.clone()
+            }
+            None => {
+                let map = dense.then(|| Arc::new(tables.pull_map(q)));
+                cache.push((camera.to_string(), *q, map.clone()));
+                map
+            }
+        }
+    }
+
+    /// Recomputes a track's estimate from its particles.
+    pub(super) fn refresh_estimate(&mut self, ti: usize) {
+        let tables = self.models[self.states[ti].model].tables.clone();
+        let status = self.tracks[ti].status;
+        let est = {
+            let s = &self.states[ti];
+            let set = s.set(&tables);
+            let mean = set.mean_position();
+            let mean_hist = s
+                .reference_from_hist
+                .inverse_transform_point(&Point3::from(mean))
+                .coords;
+            let (tcov, tstd) = set.translation_covariance();
+            let mixture = set.mixture();
+            let mut summary = crate::tracker::estimate::summarise_rotation(
+                &tables.grid,
+                &mixture,
+                &mean_hist,
+                s.rotation.as_ref(),
+                &self.config.estimate,
+            );
+            let rotation_hist = summary.rotation;
+            let to_ref = s.reference_from_hist.rotation;
+            summary.rotation = to_ref * rotation_hist;
+            for m in &mut summary.modes {
+                let q = to_ref
+                    * UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                        m.rotation_xyzw[3],
+                        m.rotation_xyzw[0],
+                        m.rotation_xyzw[1],
+                        m.rotation_xyzw[2],
+                    ));
+                let v = q.quaternion();
+                m.rotation_xyzw = [v.i, v.j, v.k, v.w];
+            }
+            let mut cov6 = [[0.0; 6]; 6];
+            for r in 0..3 {
+                for c in 0..3 {
+                    cov6[r][c] = tcov[(r, c)];
+                    cov6[r + 3][c + 3] = summary.covariance[(r, c)];
+                }
+            }
+            let est = crate::tracker::Estimate {
+                reference_from_object: Pose::from_parts(nalgebra::Translation3::from(mean), summary.rotation),
+                translation_std_m: tstd,
+                components: set.components(&self.camera_names),
+                rotation_modes: summary.modes,
+                rotation_entropy: summary.entropy,
+                covariance_6x6: cov6,
+                status,
+                stamp_ns: self.stamp_ns,
+            };
+            (est, rotation_hist)
+        };
+        self.states[ti].rotation = Some(est.1);
+        self.states[ti].estimate = Some(est.0);
+    }
+
+    /// Systematic resampling inside each source camera's component: the component keeps its
+    /// particle count and its weight (spread evenly over its new particles); copies of one
+    /// ancestor share its histogram column.
+    fn resample(&mut self, ti: usize) {
+        use rand::Rng;
+        let s = &mut self.states[ti];
+        let n = s.n();
+        let mut src_idx: Vec<usize> = Vec::with_capacity(n);
+        let mut new_w: Vec<f64> = Vec::with_capacity(n);
+        let mut cams: Vec<usize> = s.sources.clone();
+        cams.sort_unstable();
+        cams.dedup();
+        let mut new_sources = Vec::with_capacity(n);
+        for c in cams {
+            let idx: Vec<usize> = (0..n).filter(|&i| s.sources[i] == c).collect();
+            let wc: f64 = idx.iter().map(|&i| s.weights[i]).sum();
+            let m = idx.len();
+            let u0 = self.rng.random::<f64>() / m as f64;
+            let mut acc = 0.0;
+            let mut j = 0;
+            for k in 0..m {
+                let u = (u0 + k as f64 / m as f64) * wc;
+                while j + 1 < m && acc + s.weights[idx[j]] < u {
+                    acc += s.weights[idx[j]];
+                    j += 1;
+                }
+                src_idx.push(idx[j]);
+                new_w.push(wc / m as f64);
+                new_sources.push(c);
+            }
+        }
+        s.positions = src_idx.iter().map(|&i| s.positions[i]).collect();
+        s.rot.resample(&src_idx);
+        s.weights = new_w;
+        s.sources = new_sources;
+        normalise(&mut s.weights);
+    }
+}
+
+/// Sorts the active bins (with their values) ascending.
+fn sort_active(rot: &mut RotationState) {
+    if rot.active.windows(2).all(|w| w[0] < w[1]) {
+        return;
+    }
+    let nc = rot.n_cols();
+    let mut order: Vec<usize> = (0..rot.active.len()).collect();
+    order.par_sort_unstable_by_key(|i| rot.active[*i]);
+    let mut values = vec![0f32; rot.values.len()];
+    values.par_chunks_mut(nc).zip(&order).for_each(|(dst, i)| {
+        dst.copy_from_slice(&rot.values[i * nc..(i + 1) * nc]);
+    });
+    rot.active = order.iter().map(|i| rot.active[*i]).collect();
+    rot.values = values;
+}
+
+/// Per particle and lattice cell, the log posterior density (up to a constant) at the cell's
+/// lattice point: `ln(prior / volume) + f`.
+#[allow(clippy::too_many_arguments)]
+fn refine_bins(
+    lattice: &Lattice,
+    views: &[&ViewEvidence],
+    lattice_rows: &[u32],
+    bins: &[u32],
+    slots: &[u32],
+    rot: &RotationState,
+    tables: &crate::tracker::bins::GridTables,
+    n: usize,
+    matching: &super::MatchingConfig,
+) -> Vec<u32> {
+    let nc = rot.n_cols();
+    // cells whose every fine bin is matched already need nothing
+    let mut matched_in_cell = vec![0u32; lattice.points.len()];
+    for b in bins {
+        matched_in_cell[lattice.cell_of[*b as usize] as usize] += 1;
+    }
+    let mut scored: Vec<(f32, usize)> = lattice_rows
+        .par_iter()
+        .enumerate()
+        .with_min_len(256)
+        .filter(|(c, _)| (matched_in_cell[*c] as usize) < lattice.cell_bins[*c].len())
+        .map(|(c, row)| {
+            let i = *row as usize;
+            let mut f = vec![0f32; n];
+            fused_row(views, i, n, &mut f);
+            let b = bins[i] as usize;
+            let vol = tables.volume(b) as f32;
+            let best = (0..n)
+                .map(|p| {
+                    let col = rot.column_of[p] as usize;
+                    let prior = if slots[i] == u32::MAX {
+                        rot.floors[col] * vol
+                    } else {
+                        rot.values[slots[i] as usize * nc + col]
+                    };
+                    (prior / vol).max(1e-30).ln() + f[p]
+                })
+                .fold(f32::NEG_INFINITY, f32::max);
+            (best, c)
+        })
+        .collect();
+    let k = matching.refine_cells.min(scored.len());
+    if k == 0 {
+        return Vec::new();
+    }
+    scored.select_nth_unstable_by(k - 1, |a, b| b.0.total_cmp(&a.0));
+    scored.truncate(k);
+    let mut matched = std::collections::HashSet::with_capacity(bins.len());
+    for (c, _) in scored.iter().map(|(_, c)| (*c, ())) {
+        for b in &lattice.cell_bins[c] {
+            matched.insert(*b);
+        }
+    }
+    for b in bins {
+        matched.remove(b);
+    }
+    let mut out: Vec<u32> = matched.into_iter().collect();
+    out.sort_unstable();
+    out
+}
+
+/// Per particle, the posterior mass of the bins left out of the matched set, each taken at its
+/// lattice cell's fused likelihood on the prior's floor; and the volume left out.
+#[allow(clippy::too_many_arguments)]
+fn unmatched_mass(
+    lattice: &Lattice,
+    views: &[&ViewEvidence],
+    lattice_rows: &[u32],
+    bins: &[u32],
+    rot: &RotationState,
+    tables: &crate::tracker::bins::GridTables,
+    floor_rel: f32,
+    fmax: &[f32],
+) -> (Vec<f64>, f64) {
+    let n = fmax.len();
+    let mut left = lattice.cell_volume.clone();
+    for b in bins {
+        left[lattice.cell_of[*b as usize] as usize] -= tables.volume(*b as usize);
+    }
+    let lvl: Vec<f32> = rot
+        .column_of
+        .iter()
+        .map(|c| rot.floors[*c as usize].max(floor_rel))
+        .collect();
+    let total: f64 = left.iter().map(|v| v.max(0.0)).sum();
+    let mass = lattice_rows
+        .par_iter()
+        .enumerate()
+        .with_min_len(256)
+        .filter(|(c, _)| left[*c] > 1e-15)
+        .fold(
+            || (vec![0f64; n], vec![0f32; n]),
+            |(mut acc, mut f), (c, row)| {
+                fused_row(views, *row as usize, n, &mut f);
+                for p in 0..n {
+                    acc[p] += (lvl[p] as f64) * left[c] * crate::tracker::bins::fast_exp(f[p] - fmax[p]) as f64;
+                }
+                (acc, f)
+            },
+        )
+        .map(|(a, _)| a)
+        .reduce(
+            || vec![0f64; n],
+            |mut a, b| {
+                for (x, y) in a.iter_mut().zip(b) {
+                    *x += y;
+                }
+                a
+            },
+        );
+    (mass, total)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn merge_is_the_sorted_union_with_slots() {
+        let a = vec![2u32, 5, 9];
+        let b = vec![0u32, 5, 7];
+        let (out, slots, b_index) = merge(&a, &b, (8, 4), 12);
+        assert_eq!(out, vec![0, 2, 5, 7, 8, 9, 10, 11]);
+        assert_eq!(slots, vec![u32::MAX, 0, 1, u32::MAX, u32::MAX, 2, u32::MAX, u32::MAX]);
+        assert_eq!(b_index, vec![0, 2, 3]);
+        // a slice that wraps around the end of the grid
+        let (out, _, _) = merge(&[], &[5], (10, 4), 12);
+        assert_eq!(out, vec![0, 1, 5, 10, 11]);
+        let (out, _, _) = merge(&a, &b, (0, 0), 12);
+        assert_eq!(out, vec![0, 2, 5, 7, 9]);
+        let (out, _, _) = merge(&[], &[], (3, 2), 12);
+        assert_eq!(out, vec![3, 4]);
+    }
+}
