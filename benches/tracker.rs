@@ -12,7 +12,8 @@
 //!
 //! Run: `WGPU_BACKEND=vulkan cargo bench --bench tracker -- --noplot` (the codebook is cached
 //! under `target/tracker-bench-cache`; its build time is printed when it is built;
-//! `PREGRASP_BENCH_SKIP_COARSE=1` skips the 10-degree build times). Mesh:
+//! `PREGRASP_BENCH_SKIP_COARSE=1` skips the 10-degree build times; `PREGRASP_BENCH_DENSE=1`
+//! also times the dense reference, every bin matched and kept). Mesh:
 //! `PREGRASP_BENCH_MESH` (default the YCB cracker box from the shared folder, else the
 //! built-in box). The peak resident memory after four steps tracking one object is printed
 //! before the reference GEMM allocates its output.
@@ -266,6 +267,13 @@ fn fresh_tracker(cb: &Arc<Codebook>) -> Tracker {
     t
 }
 
+/// A fresh tracker with `like`'s configuration.
+fn fresh_tracker_like(like: &Tracker, cb: &Arc<Codebook>) -> Tracker {
+    let mut t = Tracker::new(like.config().clone(), cameras(), "robot".into());
+    t.add_object_model("obj", mesh(), cb.clone());
+    t
+}
+
 /// The plain f32 GEMM of the matching's size with the `gemm` crate, one call on all threads:
 /// `dst (rows x bins, column-major) = codes (rows x k, row-major) * book^T`.
 fn plain_gemm(dst: &mut [f32], codes: &[f32], book: &[f32], rows: usize, k: usize) {
@@ -326,16 +334,19 @@ fn stages(tracker: &mut Tracker, frames: &[CameraFrame], odo: &RobotOdometry, cb
     let mut dst = vec![0f32; 330 * cb.n_bins()];
     plain_gemm(&mut dst, &codes, &cb.codes, 330, k); // touch the pages once
     let mut all: Vec<StageTimings> = Vec::new();
+    let mut bins: Vec<(f64, f64)> = Vec::new();
     let mut gemm_s = Vec::new();
     let mut ratio = Vec::new();
     for i in 0..n {
-        let t = if first {
+        let report = if first {
             // a new track every time: the detections spawn particles with uniform histograms
-            *tracker = fresh_tracker(cb);
-            tracker.step(frames, Some(odo)).expect("first step").timings
+            *tracker = fresh_tracker_like(tracker, cb);
+            tracker.step(frames, Some(odo)).expect("first step")
         } else {
-            tracker.step(frames, Some(&approach(odo, i + 1))).expect("step").timings
+            tracker.step(frames, Some(&approach(odo, i + 1))).expect("step")
         };
+        bins.push((report.matched_bins as f64, report.active_bins as f64));
+        let t = report.timings;
         let t0 = Instant::now();
         plain_gemm(&mut dst, &codes, &cb.codes, 330, k);
         let g = t0.elapsed().as_secs_f64();
@@ -358,6 +369,12 @@ fn stages(tracker: &mut Tracker, frames: &[CameraFrame], odo: &RobotOdometry, cb
         med(&|t| t.resampling_s),
         med(&|t| t.estimates_s),
         med(&|t| t.total_s)
+    );
+    eprintln!(
+        "matched bins per step (median) {:.0}, active bins after the step {:.0} ({} matching)",
+        median(&mut bins.iter().map(|b| b.0).collect::<Vec<f64>>()),
+        median(&mut bins.iter().map(|b| b.1).collect::<Vec<f64>>()),
+        if tracker.config().matching.dense { "dense" } else { "sparse" }
     );
     let mut totals: Vec<f64> = all.iter().map(|t| t.total_s * 1e3).collect();
     totals.sort_by(f64::total_cmp);
@@ -397,6 +414,18 @@ fn bench(c: &mut Criterion) {
     let mut first = fresh_tracker(&cb);
     stages(&mut first, &with_detections, &odo, &cb, true);
     drop(first);
+    if std::env::var("PREGRASP_BENCH_DENSE").is_ok_and(|v| v == "1") {
+        // the dense reference: every bin matched and kept
+        let mut config = tracker.config().clone();
+        config.matching.dense = true;
+        let mut dense = Tracker::new(config, cameras(), "robot".into());
+        dense.add_object_model("obj", mesh(), cb.clone());
+        for i in 0..4 {
+            dense.step(&with_detections, Some(&approach(&odo, i))).expect("dense step");
+        }
+        stages(&mut dense, &quiet, &odo, &cb, false);
+        stages(&mut dense, &with_detections, &odo, &cb, true);
+    }
     let mut g = c.benchmark_group("tracker");
     g.sample_size(10);
     let mut i = 100;

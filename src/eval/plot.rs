@@ -342,6 +342,7 @@ mod tests {
             rotation_entropy: 0.0,
             shape_symmetric_error_deg: None,
             truth_place: None,
+            estimate_xyzw: None,
         };
         let trace = ObjectTrace {
             sequence: "s".into(),

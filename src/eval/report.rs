@@ -46,6 +46,9 @@ pub struct FrameErrors {
     /// The truth's place in the tracked distribution (`eval::trust`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub truth_place: Option<TruthPlace>,
+    /// The estimate's rotation (reference frame, x, y, z, w): pairs runs frame by frame.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub estimate_xyzw: Option<[f64; 4]>,
 }
 
 /// The truth's place in the tracked distribution at one frame (`eval::trust`): the
@@ -391,6 +394,15 @@ pub struct SequenceSummary {
     pub frames: usize,
     pub objects: Vec<String>,
     pub wall_s: f64,
+    /// Seconds spent in the tracker's steps (the rest is loading, detection and scoring).
+    #[serde(default)]
+    pub step_s: f64,
+    /// Track steps audited (`MatchingConfig::audit`) and those whose heaviest particle's
+    /// likelihood peaked outside the matched bins.
+    #[serde(default)]
+    pub audited: usize,
+    #[serde(default)]
+    pub audit_outside: usize,
 }
 
 /// `results.json`.
@@ -676,6 +688,7 @@ mod tests {
             rotation_entropy: 1.0,
             shape_symmetric_error_deg: None,
             truth_place: None,
+            estimate_xyzw: None,
         }
     }
 

@@ -132,6 +132,28 @@ pub struct ModelStore {
 }
 
 impl ModelStore {
+    /// Median of three runs of the dense matching (`rows` unit codes against every bin of the
+    /// first model's codebook: the GEMM and each code's best bin), seconds.
+    pub fn reference_gemm_s(&self, rows: usize) -> Option<f64> {
+        let cb = &self.models.values().next()?.codebook;
+        let k = cb.code_dim();
+        let mut codes: Vec<f32> = (0..rows * k)
+            .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
+            .collect();
+        crate::tracker::encoder::normalise_rows(&mut codes, k);
+        let mut out = Vec::new();
+        let mut times: Vec<f64> = (0..3)
+            .map(|_| {
+                let t0 = Instant::now();
+                let best = crate::tracker::observation::match_codes(cb, &codes, rows, &mut out);
+                std::hint::black_box(best);
+                t0.elapsed().as_secs_f64()
+            })
+            .collect();
+        times.sort_by(f64::total_cmp);
+        Some(times[1])
+    }
+
     fn get(&mut self, renderer: &Renderer, name: &str, mesh: Mesh, cfg: &EvalConfig) -> Result<Arc<Model>, EvalError> {
         let key = (name.to_string(), mesh.content_hash());
         if let Some(m) = self.models.get(&key) {
@@ -340,6 +362,7 @@ pub fn evaluate_sequence(
         .step_by(cfg.frame_stride.max(1))
         .collect();
     let plan = &plan[..cfg.max_frames.map_or(plan.len(), |m| m.min(plan.len()))];
+    let (mut step_s, mut audited, mut audit_outside) = (0.0, 0, 0);
     for &(frame_id, stamp_ns) in plan {
         let frames = frames_of_step(seq, &cameras, frame_id, &models, cfg.detection_seed)?;
         let odometry = robot_fed
@@ -351,9 +374,13 @@ pub fn evaluate_sequence(
                 world_from_odom: o.world_from_odom,
                 base_from_camera: o.base_from_camera,
             });
-        tracker
+        let t_step = Instant::now();
+        let rep = tracker
             .step(&frames, odometry.as_ref())
             .map_err(|e| EvalError::Tracker(e.to_string()))?;
+        step_s += t_step.elapsed().as_secs_f64();
+        audited += rep.audited;
+        audit_outside += rep.audit_outside;
 
         // --- scoring: ground truth from here on, never fed back ---
         let truths = objects_in_reference(seq, frame_id);
@@ -407,6 +434,10 @@ pub fn evaluate_sequence(
                             cfg.trust_samples,
                             &mut trust_rng,
                         ),
+                        estimate_xyzw: Some({
+                            let q = e.rotation.quaternion();
+                            [q.i, q.j, q.k, q.w]
+                        }),
                     }
                 });
                 if let (Some(dc), Some(i), true) = (&cfg.decide, assoc[k], table_row(object)) {
@@ -456,6 +487,9 @@ pub fn evaluate_sequence(
         frames: plan.len(),
         objects: models.keys().cloned().collect(),
         wall_s: t_start.elapsed().as_secs_f64(),
+        step_s,
+        audited,
+        audit_outside,
     };
     Ok(SequenceOutcome {
         summary,
@@ -646,6 +680,21 @@ pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>
         "particles_from_robot_camera".into(),
         tc.particles_from_robot_camera.into(),
     );
+    // wall time of the steps per frame, beside the dense matching's GEMM timed in this run
+    let frames: usize = results.sequences.iter().map(|s| s.frames).sum();
+    let step_s: f64 = results.sequences.iter().map(|s| s.step_s).sum();
+    if frames > 0 {
+        settings.insert("step_s_per_frame".into(), (step_s / frames as f64).into());
+    }
+    let audited: usize = results.sequences.iter().map(|s| s.audited).sum();
+    if audited > 0 {
+        let outside: usize = results.sequences.iter().map(|s| s.audit_outside).sum();
+        settings.insert("audited_track_steps".into(), audited.into());
+        settings.insert("dense_argmax_outside_matched".into(), (outside as f64 / audited as f64).into());
+    }
+    if let Some(g) = store.reference_gemm_s(3 * tc.particles_from_robot_camera.max(1)) {
+        settings.insert("dense_matching_gemm_s".into(), g.into());
+    }
     settings.insert(
         "codebook_s".into(),
         serde_json::to_value(&store.codebook_s).unwrap_or_default(),

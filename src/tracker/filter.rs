@@ -114,6 +114,11 @@ pub struct MatchingConfig {
     pub slice_steps: usize,
     /// Most active bins per track (the highest peak densities are kept).
     pub max_active_bins: usize,
+    /// Also find, at every step, the bin of the whole grid where the heaviest particle's
+    /// fused likelihood peaks, and count whether the matched set held it (a diagnostic of the
+    /// coarse-to-fine matching: it costs a dense matching of one code per view).
+    #[serde(default)]
+    pub audit: bool,
 }
 
 impl Default for MatchingConfig {
@@ -123,6 +128,7 @@ impl Default for MatchingConfig {
             refine_cells: 48,
             slice_steps: 30,
             max_active_bins: 48_000,
+            audit: false,
         }
     }
 }

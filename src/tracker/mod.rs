@@ -169,6 +169,12 @@ pub struct StepReport {
     /// Active bins after this step, summed over tracks.
     #[serde(default)]
     pub active_bins: usize,
+    /// Tracks audited in this step (`MatchingConfig::audit`), and those whose heaviest
+    /// particle's likelihood peaked outside the matched set.
+    #[serde(default)]
+    pub audited: usize,
+    #[serde(default)]
+    pub audit_outside: usize,
 }
 
 /// Seconds spent per stage in one step (summed over objects).

@@ -253,10 +253,11 @@ impl Tracker {
         // 5. each view's evidence (gate, strength, c_max over the matched bins, depth check)
         let t0 = Instant::now();
         let mut evidence: Vec<ViewEvidence> = Vec::new();
+        let mut evidence_view: Vec<usize> = Vec::new();
         let mut seen_by = Vec::new();
         let mut best_sim = f32::NEG_INFINITY;
         let mut depth_log = vec![0f32; n];
-        for ((e, (mx, arg)), mut sim) in encoded.iter().zip(&best).zip(sims) {
+        for (k, ((e, (mx, arg)), mut sim)) in encoded.iter().zip(&best).zip(sims).enumerate() {
             match view_evidence(
                 &codebook,
                 &mut sim,
@@ -274,11 +275,17 @@ impl Tracker {
                         *d += l;
                     }
                     evidence.push(ev);
+                    evidence_view.push(k);
                 }
                 None => self.sims.push(sim),
             }
         }
         report.timings.likelihoods_s += t0.elapsed().as_secs_f64();
+        if matching.audit && !evidence.is_empty() {
+            let outside = self.audit_matched_set(ti, &encoded, &evidence, &evidence_view, &bins, &tables, &codebook);
+            report.audited += 1;
+            report.audit_outside += usize::from(outside);
+        }
 
         let t0 = Instant::now();
         let track = &mut self.tracks[ti];
@@ -393,6 +400,43 @@ impl Tracker {
         }
         report.active_bins += self.states[ti].rot.active.len();
         report.timings.resampling_s += t0.elapsed().as_secs_f64();
+    }
+
+    /// Whether the heaviest particle's fused log-likelihood over the whole grid peaks outside
+    /// the matched `bins` (the views' evidence as matched; only views with evidence count).
+    #[allow(clippy::too_many_arguments)]
+    fn audit_matched_set(
+        &self,
+        ti: usize,
+        encoded: &[Encoded],
+        evidence: &[ViewEvidence],
+        evidence_view: &[usize],
+        bins: &[u32],
+        tables: &crate::tracker::bins::GridTables,
+        codebook: &crate::tracker::Codebook,
+    ) -> bool {
+        let s = &self.states[ti];
+        let Some(p) = (0..s.n()).max_by(|a, b| s.weights[*a].total_cmp(&s.weights[*b])) else {
+            return false;
+        };
+        let kd = codebook.code_dim();
+        let nb = tables.grid.len();
+        let mut fused = vec![0f32; nb];
+        for (ev, k) in evidence.iter().zip(evidence_view) {
+            let e = &encoded[*k];
+            let code = &e.codes[p * kd..(p + 1) * kd];
+            let sims: Vec<f32> = codebook
+                .codes
+                .par_chunks(kd)
+                .map(|row| row.iter().zip(code).map(|(a, b)| a * b).sum())
+                .collect();
+            let map = tables.pull_map(&e.q);
+            fused.par_iter_mut().zip(&map).for_each(|(f, m)| {
+                *f += crate::tracker::observation::view_loglik(sims[*m as usize], ev.inv_best[p], ev.k, ev.floor);
+            });
+        }
+        let best = (0..nb).max_by(|a, b| fused[*a].total_cmp(&fused[*b])).unwrap_or(0) as u32;
+        !bins.contains(&best)
     }
 
     /// The whole-grid bin map of `camera` for rotation `q` when it is cached or its rotation

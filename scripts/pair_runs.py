@@ -1,0 +1,79 @@
+#!/usr/bin/env python3
+"""Pairs two `pregrasp eval` runs of the same sequences frame by frame (e.g. the dense reference
+and the sparse step): the share of frames whose top mode differs, and the paired difference of
+the truth's log-likelihood (B - A) with a bootstrap interval over sequences.
+
+Usage: scripts/pair_runs.py A/frames.json B/frames.json [--mode-deg 15] [--boot 10000]
+
+A frame's top modes "differ" when the two estimates are more than --mode-deg apart and not
+both within --mode-deg of the truth modulo the object's symmetries (so a can's spin about its
+axis is no difference); the test is conservative for symmetric objects.
+"""
+import argparse
+import json
+import math
+import random
+
+
+def frames(path):
+    out = {}
+    for trace in json.load(open(path)):
+        for f in trace["frames"]:
+            e = f.get("errors")
+            if e is None:
+                continue
+            out[(trace["sequence"], trace["object"], f["frame_id"])] = e
+    return out
+
+
+def angle_deg(q1, q2):
+    d = abs(sum(a * b for a, b in zip(q1, q2)))
+    return math.degrees(2 * math.acos(min(1.0, d)))
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("a")
+    ap.add_argument("b")
+    ap.add_argument("--mode-deg", type=float, default=15.0)
+    ap.add_argument("--boot", type=int, default=10000)
+    ap.add_argument("--seed", type=int, default=1)
+    args = ap.parse_args()
+    a, b = frames(args.a), frames(args.b)
+    keys = sorted(set(a) & set(b))
+    if not keys:
+        raise SystemExit("no frame in common")
+    differ = 0
+    per_seq = {}
+    for k in keys:
+        ea, eb = a[k], b[k]
+        qa, qb = ea.get("estimate_xyzw"), eb.get("estimate_xyzw")
+        both_right = ea["symmetric_error_deg"] < args.mode_deg and eb["symmetric_error_deg"] < args.mode_deg
+        if qa is not None and qb is not None:
+            apart = angle_deg(qa, qb) > args.mode_deg
+        else:
+            apart = abs(ea["symmetric_error_deg"] - eb["symmetric_error_deg"]) > args.mode_deg
+        differ += apart and not both_right
+        la, lb = ea.get("gt_orientation_loglik"), eb.get("gt_orientation_loglik")
+        if la is not None and lb is not None:
+            per_seq.setdefault(k[0], []).append(lb - la)
+    seq_means = [sum(v) / len(v) for v in per_seq.values()]
+    mean = sum(seq_means) / len(seq_means)
+    rng = random.Random(args.seed)
+    boots = sorted(
+        sum(rng.choice(seq_means) for _ in seq_means) / len(seq_means) for _ in range(args.boot)
+    )
+    lo, hi = boots[int(0.025 * args.boot)], boots[int(0.975 * args.boot) - 1]
+    print(json.dumps({
+        "frames_paired": len(keys),
+        "sequences": len(seq_means),
+        "top_mode_differs_share": differ / len(keys),
+        "loglik_diff_b_minus_a_mean": mean,
+        "loglik_diff_95ci": [lo, hi],
+        "a_mean_symmetric_error_deg": sum(a[k]["symmetric_error_deg"] for k in keys) / len(keys),
+        "b_mean_symmetric_error_deg": sum(b[k]["symmetric_error_deg"] for k in keys) / len(keys),
+    }, indent=2))
+
+
+if __name__ == "__main__":
+    main()
