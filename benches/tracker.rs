@@ -331,8 +331,9 @@ fn stages(tracker: &mut Tracker, frames: &[CameraFrame], odo: &RobotOdometry, cb
         .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
         .collect();
     pregrasp::tracker::encoder::normalise_rows(&mut codes, k);
+    let book = cb.codes.to_f32();
     let mut dst = vec![0f32; 330 * cb.n_bins()];
-    plain_gemm(&mut dst, &codes, &cb.codes, 330, k); // touch the pages once
+    plain_gemm(&mut dst, &codes, &book, 330, k); // touch the pages once
     let mut all: Vec<StageTimings> = Vec::new();
     let mut bins: Vec<(f64, f64)> = Vec::new();
     let mut gemm_s = Vec::new();
@@ -348,7 +349,7 @@ fn stages(tracker: &mut Tracker, frames: &[CameraFrame], odo: &RobotOdometry, cb
         bins.push((report.matched_bins as f64, report.active_bins as f64));
         let t = report.timings;
         let t0 = Instant::now();
-        plain_gemm(&mut dst, &codes, &cb.codes, 330, k);
+        plain_gemm(&mut dst, &codes, &book, 330, k);
         let g = t0.elapsed().as_secs_f64();
         black_box(dst[0]);
         ratio.push(t.total_s / g);
@@ -374,7 +375,11 @@ fn stages(tracker: &mut Tracker, frames: &[CameraFrame], odo: &RobotOdometry, cb
         "matched bins per step (median) {:.0}, active bins after the step {:.0} ({} matching)",
         median(&mut bins.iter().map(|b| b.0).collect::<Vec<f64>>()),
         median(&mut bins.iter().map(|b| b.1).collect::<Vec<f64>>()),
-        if tracker.config().matching.dense { "dense" } else { "sparse" }
+        if tracker.config().matching.dense {
+            "dense"
+        } else {
+            "sparse"
+        }
     );
     let mut totals: Vec<f64> = all.iter().map(|t| t.total_s * 1e3).collect();
     totals.sort_by(f64::total_cmp);
@@ -421,7 +426,9 @@ fn bench(c: &mut Criterion) {
         let mut dense = Tracker::new(config, cameras(), "robot".into());
         dense.add_object_model("obj", mesh(), cb.clone());
         for i in 0..4 {
-            dense.step(&with_detections, Some(&approach(&odo, i))).expect("dense step");
+            dense
+                .step(&with_detections, Some(&approach(&odo, i)))
+                .expect("dense step");
         }
         stages(&mut dense, &quiet, &odo, &cb, false);
         stages(&mut dense, &with_detections, &odo, &cb, true);
@@ -457,10 +464,11 @@ fn bench(c: &mut Criterion) {
         })
     });
     drop(out);
+    let book = cb.codes.to_f32();
     let mut dst = vec![0f32; 330 * cb.n_bins()];
     g.bench_function("gemm_crate_330x128_by_128x191808", |b| {
         b.iter(|| {
-            plain_gemm(&mut dst, &codes, &cb.codes, 330, k);
+            plain_gemm(&mut dst, &codes, &book, 330, k);
             black_box(dst[0])
         })
     });

@@ -92,7 +92,8 @@ fn codes_are_unit_and_in_plane_bins_are_image_rotations() {
     let cb = Codebook::build(&CpuViews(&mesh), &mesh, grid, &CodebookConfig::coarse()).unwrap();
     for b in (0..grid.len()).step_by(97) {
         let n: f32 = cb.code(b).iter().map(|v| v * v).sum();
-        assert!((n - 1.0).abs() < 1e-4, "bin {b}: {n}");
+        // unit rows, stored as half floats (11 bits of mantissa)
+        assert!((n - 1.0).abs() < 2e-3, "bin {b}: {n}");
     }
     // a render made directly at an in-plane angle matches the bin built by rotating the image
     use pregrasp::tracker::observation::{ViewImage, encode_particles, match_codes};

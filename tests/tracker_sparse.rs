@@ -117,7 +117,13 @@ fn a_mode_outside_the_active_bins_is_found_by_the_coarse_pass() {
     let mut t = tracker(&s, false);
     t.start_track("box", &prior).unwrap();
     let first = t.estimate(t.tracks()[0].id).unwrap();
-    assert!(rotation_error_deg(&first.reference_from_object.rotation, &truth.rotation, &box_symmetries()) > 60.0);
+    assert!(
+        rotation_error_deg(
+            &first.reference_from_object.rotation,
+            &truth.rotation,
+            &box_symmetries()
+        ) > 60.0
+    );
     // no detections: the track exists already, only the images speak
     let steps = run(&s, &mut t, 8, u64::MAX);
     let (err, _, _) = *steps.last().unwrap();

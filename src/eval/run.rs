@@ -690,7 +690,10 @@ pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>
     if audited > 0 {
         let outside: usize = results.sequences.iter().map(|s| s.audit_outside).sum();
         settings.insert("audited_track_steps".into(), audited.into());
-        settings.insert("dense_argmax_outside_matched".into(), (outside as f64 / audited as f64).into());
+        settings.insert(
+            "dense_argmax_outside_matched".into(),
+            (outside as f64 / audited as f64).into(),
+        );
     }
     if let Some(g) = store.reference_gemm_s(3 * tc.particles_from_robot_camera.max(1)) {
         settings.insert("dense_matching_gemm_s".into(), g.into());

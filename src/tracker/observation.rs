@@ -198,7 +198,8 @@ pub fn encode_particles(
 /// particle's best similarity and the (lowest) bin where it is reached, computed while each
 /// chunk is still in cache (no extra pass over the `n x bins` array).
 pub fn match_codes(codebook: &Codebook, codes: &[f32], n: usize, out: &mut Vec<f32>) -> (Vec<f32>, Vec<u32>) {
-    crate::tracker::bins::match_best(codes, &codebook.codes, n, codebook.code_dim(), out)
+    let all: Vec<u32> = (0..codebook.n_bins() as u32).collect();
+    crate::tracker::sparse::match_rows(codes, &codebook.codes, n, codebook.code_dim(), &all, out)
 }
 
 /// The evidence of one view from its particles' similarities (`sim`, `rows x n`, moved into

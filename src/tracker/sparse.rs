@@ -345,12 +345,12 @@ std::thread_local! {
 }
 
 /// Cosine similarities of `n` unit codes (row-major `n x kd`) with the codebook rows
-/// `rows[i]` (rows of `book`, row-major `bins x kd`), into `out` (`out[i * n + p]`, resized),
+/// `rows[i]` (rows of `book`), into `out` (`out[i * n + p]`, resized),
 /// over all threads; returns each particle's best similarity and the codebook row where it is
 /// reached (`u32::MAX` when none is).
 pub fn match_rows(
     codes: &[f32],
-    book: &[f32],
+    book: &crate::tracker::codebook::Codes,
     n: usize,
     kd: usize,
     rows: &[u32],
@@ -367,8 +367,7 @@ pub fn match_rows(
             GATHER.with_borrow_mut(|g| {
                 g.resize(rs.len() * kd, 0.0);
                 for (dst, r) in g.chunks_mut(kd).zip(rs) {
-                    let r = *r as usize;
-                    dst.copy_from_slice(&book[r * kd..(r + 1) * kd]);
+                    book.row_into(*r as usize, dst);
                 }
                 gemm_nt(chunk, codes, g, n, rs.len(), kd);
             });
@@ -772,11 +771,13 @@ mod tests {
     fn gathered_matching_equals_the_plain_product() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
         let (n, kd, nb) = (7, 16, 900);
-        let book: Vec<f32> = (0..nb * kd).map(|_| rng.random::<f32>() - 0.5).collect();
+        let book32: Vec<f32> = (0..nb * kd).map(|_| rng.random::<f32>() - 0.5).collect();
         let codes: Vec<f32> = (0..n * kd).map(|_| rng.random::<f32>() - 0.5).collect();
         let rows: Vec<u32> = (0..600).map(|_| rng.random_range(0..nb as u32)).collect();
+        let book_codes = crate::tracker::codebook::Codes::from_f32(&book32, kd);
+        let book = book_codes.to_f32();
         let mut out = Vec::new();
-        let (mx, arg) = match_rows(&codes, &book, n, kd, &rows, &mut out);
+        let (mx, arg) = match_rows(&codes, &book_codes, n, kd, &rows, &mut out);
         for (i, r) in rows.iter().enumerate() {
             for p in 0..n {
                 let want: f32 = (0..kd).map(|k| codes[p * kd + k] * book[*r as usize * kd + k]).sum();

@@ -425,10 +425,16 @@ impl Tracker {
         for (ev, k) in evidence.iter().zip(evidence_view) {
             let e = &encoded[*k];
             let code = &e.codes[p * kd..(p + 1) * kd];
-            let sims: Vec<f32> = codebook
-                .codes
-                .par_chunks(kd)
-                .map(|row| row.iter().zip(code).map(|(a, b)| a * b).sum())
+            let sims: Vec<f32> = (0..nb)
+                .into_par_iter()
+                .with_min_len(4096)
+                .map_init(
+                    || vec![0f32; kd],
+                    |row, b| {
+                        codebook.codes.row_into(b, row);
+                        row.iter().zip(code).map(|(a, b)| a * b).sum()
+                    },
+                )
                 .collect();
             let map = tables.pull_map(&e.q);
             fused.par_iter_mut().zip(&map).for_each(|(f, m)| {
@@ -632,7 +638,13 @@ fn refine_bins(
             (best, c)
         })
         .collect();
-    let k = matching.refine_cells.min(scored.len());
+    // a track without active bins (a new one) has no support to refine around: more cells
+    let cells = if rot.active.is_empty() {
+        4 * matching.refine_cells
+    } else {
+        matching.refine_cells
+    };
+    let k = cells.min(scored.len());
     if k == 0 {
         return Vec::new();
     }
