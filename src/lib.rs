@@ -15,7 +15,9 @@ pub mod grasp;
 pub mod mesh;
 pub mod render;
 pub mod sensor;
+pub mod service;
 pub mod symmetry;
+pub mod tools;
 pub mod tracker;
 
 /// Helpers of the unit tests.

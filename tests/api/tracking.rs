@@ -486,7 +486,7 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
 
     // Tracks a client starts are capped per object (4 by default): the one beyond is refused
     // with a problem document and the tracks stay as they were.
-    let cap = app.config.limits.max_tracks_per_object;
+    let cap = app.config.service.limits.max_tracks_per_object;
     let mut refused = None;
     for _ in 0..cap + 1 {
         let before = track_ids(&app).await;

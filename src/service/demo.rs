@@ -4,18 +4,17 @@
 //! a loop. The ground-truth channel is filled so that the dashboard can plot errors (the
 //! tracker never reads it), and a decision is asked for the target every second.
 //!
-//! The frames go through the same validation and ingest path as HTTP frames
-//! ([`super::frames::ingest_frame`]); only the network hop is skipped.
+//! The frames go through the same checks and ingest path as HTTP frames
+//! ([`ServiceState::ingest_frame`]); only the network hop is skipped.
 
-use super::AppState;
-use super::cameras::{self, CameraSpec, MountDto};
-use super::decisions::{DecisionRequest, decide_blocking};
-use super::ingest::{IngestedFrame, OdometryMsg};
-use super::scene::PlaneDto;
-use super::types::{DetectionDto, IntrinsicsDto, PoseDto};
+use super::decisions::DecisionParams;
+use super::ingest::OdometryMsg;
+use super::{Service, ServiceState};
 use crate::camera::Intrinsics;
 use crate::geometry::Pose;
+use crate::grasp::SupportPlane;
 use crate::mesh::Mesh;
+use crate::sensor::{CameraFrame, CameraMount, Detection};
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 use std::sync::Arc;
@@ -139,7 +138,7 @@ impl DemoScene {
     }
 
     /// Renders one camera: depth with noise, colour, detections from the instance mask.
-    pub fn render(&self, camera: &str, world_from_camera: &Pose, stamp_ns: i64, rng: &mut impl Rng) -> IngestedFrame {
+    pub fn render(&self, camera: &str, world_from_camera: &Pose, stamp_ns: i64, rng: &mut impl Rng) -> CameraFrame {
         let k = &self.intrinsics;
         let cfw = world_from_camera.inverse();
         let mut img = match self.render_gpu(&cfw) {
@@ -172,43 +171,36 @@ impl DemoScene {
                 }
             }
             if n >= DEMO_MIN_DETECTION_PX {
-                detections.push(DetectionDto {
+                detections.push(Detection {
                     object: name.clone(),
                     bbox_xywh_px: [x0 as f64, y0 as f64, (x1 - x0 + 1) as f64, (y1 - y0 + 1) as f64],
                     score: 0.9,
                 });
             }
         }
-        IngestedFrame {
+        CameraFrame {
             camera: camera.to_string(),
             stamp_ns,
+            intrinsics: self.intrinsics,
             depth: img.depth,
             color: Some(img.color),
             detections,
-            received: Instant::now(),
         }
     }
 }
 
 /// Registers the demo's cameras, objects and support plane.
-pub fn register(state: &AppState, scene: &DemoScene) -> anyhow::Result<()> {
-    let intrinsics = IntrinsicsDto::from_intrinsics(&scene.intrinsics);
+pub fn register(state: &ServiceState, scene: &DemoScene) -> anyhow::Result<()> {
     for (id, pose) in &scene.stationary {
-        let spec = CameraSpec {
-            intrinsics,
-            mount: MountDto::Stationary {
-                world_from_camera: PoseDto::from_pose(pose),
-            },
+        let mount = CameraMount::Stationary {
+            world_from_camera: *pose,
         };
-        cameras::register(state, cameras::validate(id, spec)?)?;
+        state.register_camera(id, scene.intrinsics, mount)?;
     }
-    let spec = CameraSpec {
-        intrinsics,
-        mount: MountDto::Robot {
-            base_from_camera: PoseDto::from_pose(&scene.base_from_camera),
-        },
+    let mount = CameraMount::Robot {
+        base_from_camera: scene.base_from_camera,
     };
-    cameras::register(state, cameras::validate("robot", spec)?)?;
+    state.register_camera("robot", scene.intrinsics, mount)?;
     for (name, mesh, _) in &scene.objects {
         let same = state
             .registry()
@@ -216,10 +208,10 @@ pub fn register(state: &AppState, scene: &DemoScene) -> anyhow::Result<()> {
             .get(name)
             .is_some_and(|o| o.info.content_hash == mesh.content_hash());
         if !same {
-            super::objects::register_mesh(state, name, name, mesh.clone(), true)?;
+            state.register_object(name, name, mesh.clone(), true)?;
         }
     }
-    *state.support_plane.lock().unwrap_or_else(|p| p.into_inner()) = Some(PlaneDto {
+    *state.support_plane.lock().unwrap_or_else(|p| p.into_inner()) = Some(SupportPlane {
         normal: [0.0, 0.0, 1.0],
         point_m: [0.0, 0.0, 0.0],
     });
@@ -234,18 +226,18 @@ pub fn register(state: &AppState, scene: &DemoScene) -> anyhow::Result<()> {
 /// path at each loop): the tracks, the waiting frames, the odometry buffer and the newest
 /// stamps, so that no step fuses a frame of the last loop or interpolates odometry across
 /// the jump.
-pub fn reset_tracking(state: &AppState) {
+pub fn reset_tracking(state: &ServiceState) {
     let mut engine = state.engine.lock().unwrap_or_else(|p| p.into_inner());
     *engine = None;
     // under the engine's lock: the worker cannot step between the two
     state.ingest().clear();
     *state.restored.lock().unwrap_or_else(|p| p.into_inner()) = None;
     drop(engine);
-    super::tracks::forget_all(state);
+    state.forget_all_tracks();
 }
 
 /// Registers the demo scene and starts streaming it (returns the streaming thread's stop flag).
-pub fn start(state: AppState) -> anyhow::Result<Arc<AtomicBool>> {
+pub fn start(state: Service) -> anyhow::Result<Arc<AtomicBool>> {
     let scene = DemoScene::new()?;
     register(&state, &scene)?;
     let stop = Arc::new(AtomicBool::new(false));
@@ -256,7 +248,7 @@ pub fn start(state: AppState) -> anyhow::Result<Arc<AtomicBool>> {
     Ok(stop)
 }
 
-fn run(state: AppState, scene: DemoScene, stop: Arc<AtomicBool>) {
+fn run(state: Service, scene: DemoScene, stop: Arc<AtomicBool>) {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
     let t_start = Instant::now();
     let period_s = 1.0 / DEMO_CAMERA_HZ;
@@ -295,19 +287,21 @@ fn run(state: AppState, scene: DemoScene, stop: Arc<AtomicBool>) {
                 Some(p) => *p,
                 None => {
                     let world_from_base = scene.world_from_base(t_loop);
-                    state.metrics.odometry_accepted.fetch_add(1, Ordering::Relaxed);
-                    let _ = state.ingest().push_odometry(OdometryMsg {
+                    let odometry = OdometryMsg {
                         stamp_ns,
                         odom_from_base: world_from_base,
                         covariance: None,
                         world_from_odom: Pose::identity(),
                         base_from_camera: Some(scene.base_from_camera),
-                    });
+                    };
+                    if let Err(e) = state.ingest_odometry(odometry) {
+                        tracing::debug!("demo odometry refused: {e}");
+                    }
                     world_from_base * scene.base_from_camera
                 }
             };
             let frame = scene.render(camera, &world_from_camera, stamp_ns, &mut rng);
-            if let Err(e) = super::frames::ingest_frame(&state, frame) {
+            if let Err(e) = state.ingest_frame(frame, Instant::now()) {
                 tracing::debug!("demo frame refused: {e}");
             }
         }
@@ -323,11 +317,11 @@ fn run(state: AppState, scene: DemoScene, stop: Arc<AtomicBool>) {
                 .map(|v| v.id)
                 .collect();
             for id in targets {
-                let req = DecisionRequest {
-                    n_samples: Some(300),
-                    ..DecisionRequest::default()
+                let params = DecisionParams {
+                    n_samples: 300,
+                    ..DecisionParams::default()
                 };
-                if let Err(e) = decide_blocking(&state, id, &req) {
+                if let Err(e) = state.decide(id, &params) {
                     tracing::debug!("demo decision for track {id}: {e}");
                 }
             }
