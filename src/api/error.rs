@@ -307,6 +307,21 @@ mod tests {
     use super::*;
 
     #[test]
+    fn each_service_and_grasp_error_has_its_status() {
+        let status = |e: ServiceError| ApiError::from(e).problem().status;
+        assert_eq!(status(ServiceError::not_found("track", "7")), 404);
+        assert_eq!(status(ServiceError::Invalid("x".into())), 422);
+        assert_eq!(status(ServiceError::Stale("x".into())), 409);
+        assert_eq!(status(ServiceError::NotReady("x".into())), 503);
+        assert_eq!(status(ServiceError::Grasp(GraspError::InvalidQuery("x".into()))), 422);
+        assert_eq!(status(ServiceError::Grasp(GraspError::InvalidGripper("x".into()))), 422);
+        assert_eq!(status(ServiceError::Grasp(GraspError::NoCandidate("x".into()))), 409);
+        assert_eq!(status(ServiceError::Grasp(GraspError::InvalidMesh("x".into()))), 409);
+        assert_eq!(status(ServiceError::Grasp(GraspError::NoSamples)), 503);
+        assert_eq!(status(ServiceError::Grasp(GraspError::Unsupported("x".into()))), 500);
+    }
+
+    #[test]
     fn problem_documents_carry_status_and_detail() {
         let p = ApiError::not_found("camera", "ext9").problem();
         assert_eq!(p.status, 404);

@@ -144,7 +144,8 @@ fn common_errors(has_body: bool) -> Vec<(&'static str, &'static str)> {
     v
 }
 
-/// Documents every error answer as what it is, an RFC 9457 problem document
+/// Gives every answer a description, documents every error answer as what it is, an RFC 9457
+/// problem document
 /// (`application/problem+json` with the `Problem` schema), and adds the answers that every
 /// operation can give (a malformed request, a missing token, a foreign Host).
 fn document_errors(doc: &mut utoipa::openapi::OpenApi) {
@@ -168,8 +169,19 @@ fn document_errors(doc: &mut utoipa::openapi::OpenApi) {
                     .or_insert_with(|| RefOr::T(ResponseBuilder::new().description(description).build()));
             }
             for (status, response) in op.responses.responses.iter_mut() {
-                let is_error = status.starts_with('4') || status.starts_with('5');
-                if let (true, RefOr::T(r)) = (is_error, response) {
+                let RefOr::T(r) = response else { continue };
+                // OpenAPI 3.1 requires a description on every response (client generators
+                // refuse a document without): the status's reason phrase when none was given
+                if r.description.is_empty() {
+                    r.description = status
+                        .parse::<u16>()
+                        .ok()
+                        .and_then(|s| axum::http::StatusCode::from_u16(s).ok())
+                        .and_then(|s| s.canonical_reason())
+                        .unwrap_or("Answer")
+                        .to_string();
+                }
+                if status.starts_with('4') || status.starts_with('5') {
                     r.content.clear();
                     r.content
                         .insert("application/problem+json".to_string(), problem().into());

@@ -132,6 +132,7 @@ async fn get_object(State(state): State<AppState>, Path(id): Path<String>) -> Re
 
 /// Query of an upload.
 #[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 pub struct UploadQuery {
     /// Display name (default: the id).
     pub name: Option<String>,

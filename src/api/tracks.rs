@@ -239,6 +239,7 @@ pub fn router() -> OpenApiRouter<AppState> {
 
 /// Query of `/tracks/{id}/samples`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 pub struct SamplesQuery {
     /// How many poses (1..=5,000; default 100).
     pub n: Option<usize>,

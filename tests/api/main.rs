@@ -5,6 +5,7 @@ mod bad_requests;
 mod hardening;
 mod ingest;
 mod openapi;
+mod python_client;
 mod registry;
 mod replay;
 mod tracking;
