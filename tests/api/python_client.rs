@@ -54,10 +54,16 @@ async fn a_generated_python_client_calls_the_service() {
         .expect("run openapi-python-client");
     let log = String::from_utf8_lossy(&gen_out.stdout).to_string() + &String::from_utf8_lossy(&gen_out.stderr);
     assert!(gen_out.status.success(), "openapi-python-client failed:\n{log}");
-    assert!(package.join("api/decisions/post_decision.py").is_file(), "no decision call generated:\n{log}");
+    assert!(
+        package.join("api/decisions/post_decision.py").is_file(),
+        "no decision call generated:\n{log}"
+    );
     // every operation but the two PNG images is generated with its answers
     let skipped: Vec<&str> = log.lines().filter(|l| l.contains("will not be generated")).collect();
-    assert!(skipped.is_empty(), "operations left out of the client: {skipped:?}\n{log}");
+    assert!(
+        skipped.is_empty(),
+        "operations left out of the client: {skipped:?}\n{log}"
+    );
 
     // a server with two cameras and the box, its codebook ready
     let app = spawn_app().await;
@@ -128,6 +134,9 @@ async fn a_generated_python_client_calls_the_service() {
     let rfg = pose_from_json(&summary["reference_from_gripper"]);
     let bfg = pose_from_json(&summary["base_from_gripper"]);
     let expected = base_from_camera * rfg;
-    assert!((bfg.translation.vector - expected.translation.vector).norm() < 1e-9, "{summary}");
+    assert!(
+        (bfg.translation.vector - expected.translation.vector).norm() < 1e-9,
+        "{summary}"
+    );
     assert_eq!(summary["world_from_gripper"], decision["world_from_gripper"]);
 }
