@@ -58,8 +58,8 @@ pub struct FrameEvent {
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 #[serde(tag = "event", content = "data", rename_all = "snake_case")]
 pub enum ServerEvent {
-    Track(TrackView),
-    Decision(DecisionEvent),
+    Track(Box<TrackView>),
+    Decision(Box<DecisionEvent>),
     Frame(FrameEvent),
     Stats(Stats),
 }
@@ -67,11 +67,11 @@ pub enum ServerEvent {
 impl From<&ServiceEvent> for ServerEvent {
     fn from(e: &ServiceEvent) -> Self {
         match e {
-            ServiceEvent::Track(t) => Self::Track(TrackView::from(&**t)),
-            ServiceEvent::Decision { track_id, decision } => Self::Decision(DecisionEvent {
+            ServiceEvent::Track(t) => Self::Track(Box::new(TrackView::from(&**t))),
+            ServiceEvent::Decision { track_id, decision } => Self::Decision(Box::new(DecisionEvent {
                 track_id: *track_id,
                 decision: DecisionView::from(&**decision),
-            }),
+            })),
             ServiceEvent::Frame { camera, stamp_ns } => Self::Frame(FrameEvent {
                 camera: camera.clone(),
                 stamp_ns: *stamp_ns,

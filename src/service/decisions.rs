@@ -126,6 +126,9 @@ pub struct SampleBank {
     pub drawn: Drawn,
 }
 
+/// An answer shared within one step: (the bank's generation, the query's key, the answer).
+type SharedAnswer = (u64, String, Arc<DecisionRecord>);
+
 /// Decisions without waiting for the tracker: a planner's query reads the bank of samples
 /// the worker drew after the latest step (taking the tracker's lock only for a track nobody
 /// has asked about yet), and identical queries within one step share one answer.
@@ -134,8 +137,8 @@ pub struct DecisionCache {
     banks: Mutex<HashMap<u64, Arc<SampleBank>>>,
     /// Track -> (last query, most samples asked).
     interest: Mutex<HashMap<u64, (std::time::Instant, usize)>>,
-    /// Track -> (generation, query key, answer).
-    answers: Mutex<HashMap<u64, (u64, String, Arc<DecisionRecord>)>>,
+    /// Track -> its last answer.
+    answers: Mutex<HashMap<u64, SharedAnswer>>,
 }
 
 impl DecisionCache {
