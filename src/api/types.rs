@@ -17,7 +17,7 @@ pub struct PoseDto {
     pub translation_m: [f64; 3],
 }
 
-pub use crate::service::scene::MAX_POSITION_M;
+pub use crate::service::checks::MAX_POSITION_M;
 
 impl PoseDto {
     /// Validates (finite numbers, unit quaternion, a position within [`MAX_POSITION_M`]) into a
@@ -92,7 +92,7 @@ impl From<DetectionDto> for crate::sensor::Detection {
     }
 }
 
-pub use crate::service::registry::{check_id, check_name, shorten};
+pub use crate::service::checks::{check_id, check_name, shorten};
 
 /// `Json<T>` whose rejections are problem documents.
 pub struct ApiJson<T>(pub T);

@@ -11,9 +11,11 @@ use super::decisions::DecisionParams;
 use super::ingest::OdometryMsg;
 use super::{Service, ServiceState};
 use crate::camera::Intrinsics;
+use crate::generate::sim::{Placed, SceneSim, visible_boxes};
 use crate::geometry::Pose;
 use crate::grasp::SupportPlane;
 use crate::mesh::Mesh;
+use crate::render::ClipRange;
 use crate::sensor::{CameraFrame, CameraMount, Detection};
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
@@ -52,9 +54,9 @@ pub struct DemoScene {
     pub stationary: Vec<(String, Pose)>,
     pub base_from_camera: Pose,
     pub intrinsics: Intrinsics,
-    /// The objects (instance ids 1..) and the table uploaded to the wgpu renderer, on first use;
-    /// `None` when wgpu has no adapter (the CPU rasteriser renders instead).
-    gpu_scene: std::sync::OnceLock<Option<Vec<crate::render::SceneObject>>>,
+    /// The generator's scene simulator over the objects (instance ids 1..) and the table: wgpu
+    /// (lavapipe without a GPU), the CPU rasteriser when wgpu has no adapter.
+    sim: SceneSim,
 }
 
 impl DemoScene {
@@ -72,12 +74,25 @@ impl DemoScene {
         for v in &mut table.vertices_m {
             v[2] -= 0.02;
         }
+        let objects = vec![
+            place("box", 0.05, -0.2, 0.6)?,
+            place("can", -0.1, 0.05, 0.0)?,
+            place("mug", 0.1, 0.22, 2.2)?,
+        ];
+        let placed = objects
+            .iter()
+            .map(|(_, mesh, pose)| Placed {
+                mesh: Arc::new(mesh.clone()),
+                world_from_object: *pose,
+            })
+            .collect();
+        let props = vec![Placed {
+            mesh: Arc::new(table.clone()),
+            world_from_object: Pose::identity(),
+        }];
+        let sim = SceneSim::new(placed, props, ClipRange::new(0.05, 20.0)?, DEMO_BACKGROUND_RGB);
         Ok(Self {
-            objects: vec![
-                place("box", 0.05, -0.2, 0.6)?,
-                place("can", -0.1, 0.05, 0.0)?,
-                place("mug", 0.1, 0.22, 2.2)?,
-            ],
+            objects,
             table,
             stationary: vec![
                 ("ext1".into(), look_at([-0.8, -0.9, 0.8], [0.0, 0.0, 0.05])),
@@ -85,7 +100,7 @@ impl DemoScene {
             ],
             base_from_camera: look_at([0.0, 0.0, 1.25], [1.0, 0.0, 0.55]),
             intrinsics: Intrinsics::from_focal(DEMO_WIDTH_PX, DEMO_HEIGHT_PX, DEMO_FOCAL_PX)?,
-            gpu_scene: std::sync::OnceLock::new(),
+            sim,
         })
     }
 
@@ -97,87 +112,29 @@ impl DemoScene {
         Pose::from_parts(Translation3::new(x, 0.05, -0.75), UnitQuaternion::identity())
     }
 
-    /// One camera's image from the wgpu renderer (lavapipe without a GPU); `None` when wgpu has
-    /// no adapter or the render fails.
-    fn render_gpu(&self, camera_from_world: &Pose) -> Option<crate::render::SceneRender> {
-        let renderer = super::codebooks::template_renderer()?;
-        let scene = self
-            .gpu_scene
-            .get_or_init(|| {
-                let mut out = Vec::new();
-                for (i, (_, mesh, world_from_object)) in self.objects.iter().enumerate() {
-                    out.push(crate::render::SceneObject {
-                        mesh: renderer.upload_mesh(mesh).ok()?,
-                        world_from_object: *world_from_object,
-                        instance_id: i as u16 + 1,
-                    });
-                }
-                out.push(crate::render::SceneObject {
-                    mesh: renderer.upload_mesh(&self.table).ok()?,
-                    world_from_object: Pose::identity(),
-                    instance_id: u16::MAX,
-                });
-                Some(out)
-            })
-            .as_ref()?;
-        let clip = crate::render::ClipRange::new(0.05, 20.0).ok()?;
-        match renderer.render_scene_lit(
-            &self.intrinsics,
-            camera_from_world,
-            scene,
-            clip,
-            DEMO_BACKGROUND_RGB,
-            None,
-        ) {
-            Ok(img) => Some(img),
-            Err(e) => {
-                tracing::warn!("demo render failed ({e}); using the CPU rasteriser");
-                None
-            }
-        }
-    }
-
     /// Renders one camera: depth with noise, colour, detections from the instance mask.
     pub fn render(&self, camera: &str, world_from_camera: &Pose, stamp_ns: i64, rng: &mut impl Rng) -> CameraFrame {
         let k = &self.intrinsics;
-        let cfw = world_from_camera.inverse();
-        let mut img = match self.render_gpu(&cfw) {
-            Some(img) => img,
-            None => {
-                let mut list: Vec<(&Mesh, Pose)> = self.objects.iter().map(|(_, m, p)| (m, cfw * p)).collect();
-                list.push((&self.table, cfw));
-                let r = crate::tracker::raster::render(k, &list, 0.05, DEMO_BACKGROUND_RGB);
-                crate::render::SceneRender {
-                    depth: r.depth,
-                    color: r.color,
-                    instance: r.instance,
-                }
-            }
-        };
+        let mut img = self
+            .sim
+            .render(super::codebooks::template_renderer(), k, world_from_camera);
         for d in &mut img.depth.data_m {
             if *d > 0.0 {
                 *d *= 1.0 + (DEMO_DEPTH_NOISE_REL * (rng.random::<f64>() * 2.0 - 1.0)) as f32;
             }
         }
-        let mut detections = Vec::new();
-        for (i, (name, _, _)) in self.objects.iter().enumerate() {
-            let id = i as u16 + 1;
-            let (mut x0, mut y0, mut x1, mut y1, mut n) = (u32::MAX, u32::MAX, 0, 0, 0usize);
-            for y in 0..k.height {
-                for x in 0..k.width {
-                    if img.instance[(y * k.width + x) as usize] == id {
-                        (x0, y0, x1, y1, n) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y), n + 1);
-                    }
-                }
-            }
-            if n >= DEMO_MIN_DETECTION_PX {
-                detections.push(Detection {
-                    object: name.clone(),
-                    bbox_xywh_px: [x0 as f64, y0 as f64, (x1 - x0 + 1) as f64, (y1 - y0 + 1) as f64],
-                    score: 0.9,
-                });
-            }
-        }
+        let boxes = visible_boxes(&self.sim.visible_masks(&img), k.width);
+        let detections = self
+            .objects
+            .iter()
+            .zip(boxes)
+            .filter(|(_, b)| b.px_count >= DEMO_MIN_DETECTION_PX as u64)
+            .map(|((name, _, _), b)| Detection {
+                object: name.clone(),
+                bbox_xywh_px: b.bbox_xywh_px.map(|v| v as f64),
+                score: 0.9,
+            })
+            .collect();
         CameraFrame {
             camera: camera.to_string(),
             stamp_ns,

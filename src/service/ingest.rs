@@ -25,9 +25,9 @@
 //!   reference time (linear in translation, slerp in rotation).
 
 use super::ServiceState;
+use super::checks::shorten;
 use super::error::ServiceError;
 use super::events::ServiceEvent;
-use super::registry::shorten;
 use crate::geometry::Pose;
 use crate::sensor::{CameraFrame, Detection};
 use nalgebra::{Isometry3, Translation3};
@@ -494,6 +494,11 @@ impl ServiceState {
     /// odometry's clock and with it the tracks).
     pub fn ingest_odometry(&self, msg: OdometryMsg) -> Result<(), ServiceError> {
         let stamp_ns = msg.stamp_ns;
+        super::checks::check_pose("odom_from_base", &msg.odom_from_base)?;
+        super::checks::check_pose("world_from_odom", &msg.world_from_odom)?;
+        if let Some(p) = &msg.base_from_camera {
+            super::checks::check_pose("base_from_camera", p)?;
+        }
         let reset = self.ingest().push_odometry(msg).map_err(|e| match e {
             IngestError::BadStamp { .. } => ServiceError::Invalid(e.to_string()),
             e => ServiceError::Stale(e.to_string()),
@@ -534,6 +539,67 @@ mod tests {
     }
 
     const MS: i64 = 1_000_000;
+
+    /// The service takes frames and odometry as domain types, checked as HTTP's are: a second
+    /// transport (a ROS bridge) needs no DTO.
+    #[test]
+    fn the_service_checks_domain_frames_and_odometry_against_its_registry() {
+        use crate::camera::{DepthImage, Intrinsics};
+        use crate::sensor::CameraMount;
+        use crate::service::{Service, ServiceConfig, ServiceError};
+        let tmp = tempfile::tempdir().unwrap();
+        let service = Service::open(ServiceConfig::new(tmp.path().to_path_buf())).unwrap();
+        let k = Intrinsics::from_focal(8, 6, 10.0).unwrap();
+        let mount = CameraMount::Stationary {
+            world_from_camera: Pose::identity(),
+        };
+        service.register_camera("ext1", k, mount).unwrap();
+        let frame = |camera: &str, w: u32, dets: Vec<Detection>| CameraFrame {
+            camera: camera.into(),
+            stamp_ns: 1_000 * MS,
+            intrinsics: Intrinsics::from_focal(w, 6, 10.0).unwrap(),
+            depth: DepthImage::zeros(w, 6),
+            color: None,
+            detections: dets,
+        };
+        let now = Instant::now();
+        assert!(matches!(
+            service.ingest_frame(frame("nope", 8, vec![]), now),
+            Err(ServiceError::NotFound { .. })
+        ));
+        assert!(matches!(
+            service.ingest_frame(frame("ext1", 10, vec![]), now),
+            Err(ServiceError::Invalid(_))
+        ));
+        let unknown = Detection {
+            object: "mug".into(),
+            bbox_xywh_px: [0.0, 0.0, 2.0, 2.0],
+            score: 0.5,
+        };
+        assert!(matches!(
+            service.ingest_frame(frame("ext1", 8, vec![unknown]), now),
+            Err(ServiceError::Invalid(_))
+        ));
+        let receipt = service.ingest_frame(frame("ext1", 8, vec![]), now).unwrap();
+        assert_eq!((receipt.queue_depth, receipt.dropped), (1, 0));
+        let far = OdometryMsg {
+            stamp_ns: 1_000 * MS,
+            odom_from_base: Isometry3::translation(2_000.0, 0.0, 0.0),
+            covariance: None,
+            world_from_odom: Pose::identity(),
+            base_from_camera: None,
+        };
+        assert!(matches!(
+            service.ingest_odometry(far.clone()),
+            Err(ServiceError::Invalid(_))
+        ));
+        let near = OdometryMsg {
+            odom_from_base: Pose::identity(),
+            ..far
+        };
+        service.ingest_odometry(near).unwrap();
+        assert_eq!(service.ingest().odometry_len(), 1);
+    }
 
     #[test]
     fn late_frames_inside_the_window_are_taken_older_ones_refused() {

@@ -6,6 +6,7 @@
 //! that ingest paths other than HTTP (ROS 2 over Zenoh, bags) can feed it as `api` does.
 //! Failures are [`ServiceError`]s; `api` turns them into problem documents.
 
+pub mod checks;
 pub mod codebooks;
 pub mod decide;
 pub mod decisions;

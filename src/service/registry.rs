@@ -2,6 +2,7 @@
 //! written to the store on every change. Ids and names are checked here, so that every ingest
 //! path (HTTP, a ROS bridge) gets the same rules.
 
+use super::checks::{check_id, check_name, check_pose};
 use super::error::ServiceError;
 use super::store::{Store, Table};
 use super::{Limits, ServiceState};
@@ -223,43 +224,6 @@ impl Registry {
     }
 }
 
-/// At most 64 characters of `s` for an error message (a client's string is not echoed whole).
-pub fn shorten(s: &str) -> String {
-    let mut out: String = s.chars().take(64).filter(|c| !c.is_control()).collect();
-    if s.chars().count() > 64 {
-        out.push_str("...");
-    }
-    out
-}
-
-/// Checks a display name: at most `max_chars` characters, no control characters.
-pub fn check_name(name: &str, max_chars: usize) -> Result<(), ServiceError> {
-    if name.chars().count() > max_chars || name.chars().any(char::is_control) {
-        return Err(ServiceError::Invalid(format!(
-            "name '{}' must be at most {max_chars} characters without control characters",
-            shorten(name)
-        )));
-    }
-    Ok(())
-}
-
-/// Checks that an id is usable in a URL path and as a store key.
-pub fn check_id(kind: &str, id: &str) -> Result<(), ServiceError> {
-    let ok = !id.is_empty()
-        && id.len() <= 64
-        && id
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-' || c == '.');
-    if ok {
-        Ok(())
-    } else {
-        Err(ServiceError::Invalid(format!(
-            "{kind} id '{}' must be 1-64 characters of A-Z, a-z, 0-9, '_', '-', '.'",
-            shorten(id)
-        )))
-    }
-}
-
 /// Checks that intrinsics are plausible for a camera: a focal length up to 100 image widths, a
 /// principal point within an image of the image.
 fn check_plausible(i: &Intrinsics) -> Result<(), ServiceError> {
@@ -290,6 +254,10 @@ impl ServiceState {
     ) -> Result<Camera, ServiceError> {
         check_id("camera", id)?;
         check_plausible(&intrinsics)?;
+        match &mount {
+            CameraMount::Stationary { world_from_camera } => check_pose("mount.world_from_camera", world_from_camera)?,
+            CameraMount::Robot { base_from_camera } => check_pose("mount.base_from_camera", base_from_camera)?,
+        }
         let cam = Camera {
             id: id.to_string(),
             intrinsics,

@@ -2,16 +2,15 @@
 //! the world frame), ground truth for display, and the cameras' places for drawing.
 
 use super::ServiceState;
+use super::checks::{check_pose, shorten};
 use super::error::ServiceError;
 use super::ingest::check_stamp;
-use super::registry::shorten;
 use super::store::{SUPPORT_PLANE_KEY, Store, Table};
 use crate::geometry::Pose;
 use crate::grasp::SupportPlane;
 use crate::sensor::CameraMount;
 
-/// Farthest position accepted anywhere (poses, planes), metres from the frame's origin.
-pub const MAX_POSITION_M: f64 = 1_000.0;
+pub use super::checks::MAX_POSITION_M;
 
 /// Most trajectory points served.
 pub const MAX_TRAJECTORY_POINTS: usize = 500;
@@ -88,6 +87,9 @@ impl ServiceState {
             ));
         }
         check_stamp(stamp_ns).map_err(|e| ServiceError::Invalid(format!("stamp_ns: {e}")))?;
+        for (o, pose) in &objects {
+            check_pose(&format!("world_from_object of '{}'", shorten(o)), pose)?;
+        }
         {
             // one entry per registered object: the map stays as small as the registry
             let reg = self.registry();

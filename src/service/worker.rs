@@ -220,6 +220,14 @@ impl ServiceState {
                 "translation_std_m must be in [{MIN_PRIOR_STD_M}, {MAX_PRIOR_STD_M}], got {std_m}"
             )));
         }
+        match &start.pose {
+            PriorPose::World { world_from_object } => {
+                super::checks::check_pose("world_from_object", world_from_object)?
+            }
+            PriorPose::Reference { reference_from_object } => {
+                super::checks::check_pose("reference_from_object", reference_from_object)?
+            }
+        }
         if let Some(d) = start.rotation_std_deg
             && !(MIN_PRIOR_STD_DEG..=180.0).contains(&d)
         {
