@@ -5,7 +5,7 @@
 //! - Stamps are nanoseconds in `0..=MAX_STAMP_NS`; every difference of stamps is computed with
 //!   checked arithmetic.
 //! - The *newest stamp* is kept per camera (and for odometry). A frame whose stamp is older than
-//!   its camera's newest, or the newest of any camera, minus `window_ns` is refused (409, counted
+//!   its camera's newest, or the newest of any camera, minus `window_ns` is refused as stale (counted
 //!   in `frames_stale`); so is a frame whose stamp this camera already sent. Late frames inside
 //!   the window are accepted, in any order.
 //! - A jump back by more than `clock_reset_ns` (default: the larger of the window and one
