@@ -14,7 +14,9 @@ use serde::{Deserialize, Serialize};
 use std::convert::Infallible;
 use tokio_stream::StreamExt;
 use tokio_stream::wrappers::BroadcastStream;
-use utoipa::ToSchema;
+use utoipa::openapi::schema::{ObjectBuilder, OneOfBuilder, Schema, Type};
+use utoipa::openapi::{Ref, RefOr};
+use utoipa::{PartialSchema, ToSchema};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
@@ -54,14 +56,64 @@ pub struct FrameEvent {
     pub stamp_ns: i64,
 }
 
-/// One event of the stream: `event` is the SSE event name, `data` its JSON.
-#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+/// One event of the stream: `event` is the SSE event name, `data` its JSON (see the schema
+/// below, written by hand: SSE carries `data` as a string of JSON).
+#[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(tag = "event", content = "data", rename_all = "snake_case")]
 pub enum ServerEvent {
     Track(Box<TrackView>),
     Decision(Box<DecisionEvent>),
     Frame(FrameEvent),
     Stats(Stats),
+}
+
+/// The event names with the schemas of their data.
+const EVENT_DATA: [(&str, &str); 4] = [
+    ("track", "TrackView"),
+    ("decision", "DecisionEvent"),
+    ("frame", "FrameEvent"),
+    ("stats", "Stats"),
+];
+
+/// Each event as an SSE client reads it (OpenAPI 3.2's way for `text/event-stream`): the
+/// `event` name, and `data`, a string of JSON whose schema is `contentSchema`.
+impl utoipa::PartialSchema for ServerEvent {
+    fn schema() -> RefOr<Schema> {
+        let variant = |name: &str, data: &str| {
+            ObjectBuilder::new()
+                .property(
+                    "event",
+                    ObjectBuilder::new().schema_type(Type::String).enum_values(Some([name])),
+                )
+                .property(
+                    "data",
+                    ObjectBuilder::new()
+                        .schema_type(Type::String)
+                        .content_media_type("application/json")
+                        .content_schema(Some(Ref::from_schema_name(data))),
+                )
+                .required("event")
+                .required("data")
+        };
+        let mut one_of = OneOfBuilder::new().description(Some(
+            "One event of the stream: its SSE event name and its data, a string of JSON",
+        ));
+        for (name, data) in EVENT_DATA {
+            one_of = one_of.item(variant(name, data));
+        }
+        one_of.into()
+    }
+}
+
+impl ToSchema for ServerEvent {
+    fn schemas(schemas: &mut Vec<(String, RefOr<Schema>)>) {
+        schemas.push((TrackView::name().into(), TrackView::schema()));
+        <TrackView as ToSchema>::schemas(schemas);
+        schemas.push((DecisionEvent::name().into(), DecisionEvent::schema()));
+        <DecisionEvent as ToSchema>::schemas(schemas);
+        schemas.push((FrameEvent::name().into(), FrameEvent::schema()));
+        schemas.push((Stats::name().into(), Stats::schema()));
+    }
 }
 
 impl From<&ServiceEvent> for ServerEvent {
@@ -108,4 +160,33 @@ async fn events(State(state): State<AppState>) -> Sse<impl Stream<Item = Result<
         let _ = shutdown.wait_for(|v| *v).await;
     });
     Sse::new(stream).keep_alive(KeepAlive::default())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_documented_event_names_are_the_sent_ones() {
+        let events = [
+            ServerEvent::Frame(FrameEvent {
+                camera: "ext1".into(),
+                stamp_ns: 1,
+            }),
+            ServerEvent::Stats(Stats::default()),
+        ];
+        for (e, schema) in events.iter().zip(["FrameEvent", "Stats"]) {
+            let v = serde_json::to_value(e).unwrap();
+            let name = v["event"].as_str().unwrap();
+            assert!(EVENT_DATA.contains(&(name, schema)), "{name}");
+        }
+        let doc = serde_json::to_value(ServerEvent::schema()).unwrap();
+        let names: Vec<&str> = doc["oneOf"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v["properties"]["event"]["enum"][0].as_str().unwrap())
+            .collect();
+        assert_eq!(names, ["track", "decision", "frame", "stats"]);
+    }
 }
