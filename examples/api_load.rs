@@ -16,9 +16,9 @@
 //!    stream (how a planner meets it) and once after the stream stopped; reports p50/p99
 //!    client latency of each.
 
-use pregrasp::api::demo::{DemoScene, register};
 use pregrasp::api::{ApiConfig, AppState};
 use pregrasp::geometry::Pose;
+use pregrasp::service::demo::{DemoScene, register};
 use rand::SeedableRng;
 use serde_json::{Value, json};
 use std::sync::Arc;
@@ -114,7 +114,7 @@ async fn decision_load(
         .as_array()
         .into_iter()
         .flatten()
-        .find(|t| t["object_id"] == pregrasp::api::demo::DEMO_TARGET)
+        .find(|t| t["object_id"] == pregrasp::service::demo::DEMO_TARGET)
         .and_then(|t| t["id"].as_u64())
     else {
         return Ok(None);
@@ -198,13 +198,13 @@ async fn main() -> anyhow::Result<()> {
     // Pre-render and encode: the robot at ROBOT_POSES points of its drive, the stationary
     // cameras once each (the scene is static).
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
-    let encode = |f: pregrasp::api::ingest::IngestedFrame| Encoded {
+    let encode = |f: pregrasp::sensor::CameraFrame| Encoded {
         depth: png16(&f.depth),
         color: png_rgb(f.color.as_ref().expect("color")),
         detections: serde_json::to_value(&f.detections).expect("dets"),
     };
     let robot_path: Vec<Pose> = (0..ROBOT_POSES)
-        .map(|i| scene.world_from_base(pregrasp::api::demo::DEMO_DRIVE_S * i as f64 / (ROBOT_POSES - 1) as f64))
+        .map(|i| scene.world_from_base(pregrasp::service::demo::DEMO_DRIVE_S * i as f64 / (ROBOT_POSES - 1) as f64))
         .collect();
     let robot_frames: Vec<Encoded> = robot_path
         .iter()

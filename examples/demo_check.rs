@@ -13,7 +13,7 @@
 //! the service reports it, and whether the object's track ever answered `grasp`). Exits 1 on
 //! any failure. The tracker never sees the truth; only the service's `truth` field is read.
 
-use pregrasp::api::demo::{DEMO_DRIVE_S, DEMO_PAUSE_S};
+use pregrasp::service::demo::{DEMO_DRIVE_S, DEMO_PAUSE_S};
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};

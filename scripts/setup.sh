@@ -1,12 +1,26 @@
 #!/usr/bin/env bash
 # Installs the system packages pregrasp needs on a fresh Debian/Ubuntu machine (as root or with
-# sudo): Mesa's software Vulkan driver so that wgpu finds an adapter without a GPU, and, with
-# --browser, Debian's Chromium for the dashboard's browser test. Idempotent: it installs only
-# what is missing.
+# sudo): Mesa's software Vulkan driver so that wgpu finds an adapter without a GPU; with
+# --browser, Debian's Chromium for the dashboard's browser test; with --python-client,
+# openapi-python-client (pinned) in a virtual environment under target/ for the generated
+# client's test (tests/api/python_client.rs; needs python3 with venv). Idempotent: it installs
+# only what is missing, and returns at once when everything is there.
 set -euo pipefail
+cd "$(dirname "$0")/.."
+# the generator's version the test was written against (its output's layout changes between
+# minor versions)
+OPENAPI_PYTHON_CLIENT_VERSION=0.29.1
 want=(mesa-vulkan-drivers libvulkan1)
-if [[ "${1:-}" == "--browser" ]]; then
-  want+=(chromium)
+python_client=0
+for arg in "$@"; do
+  case "$arg" in
+    --browser) want+=(chromium) ;;
+    --python-client) python_client=1 ;;
+    *) echo "setup: unknown option $arg (--browser, --python-client)" >&2; exit 2 ;;
+  esac
+done
+if ((python_client)); then
+  want+=(python3 python3-venv)
 fi
 missing=()
 for p in "${want[@]}"; do
@@ -22,4 +36,13 @@ fi
 if ! command -v cargo >/dev/null; then
   echo "setup: cargo not found; install Rust (https://rustup.rs) first" >&2
   exit 1
+fi
+if ((python_client)); then
+  VENV=target/openapi-client-venv
+  have=$("$VENV/bin/openapi-python-client" --version 2>/dev/null | awk '{print $NF}' || true)
+  if [[ "$have" != "$OPENAPI_PYTHON_CLIENT_VERSION" ]]; then
+    echo "setup: installing openapi-python-client $OPENAPI_PYTHON_CLIENT_VERSION into $VENV" >&2
+    python3 -m venv --clear "$VENV"
+    "$VENV/bin/pip" install --quiet --disable-pip-version-check "openapi-python-client==$OPENAPI_PYTHON_CLIENT_VERSION"
+  fi
 fi

@@ -3,7 +3,9 @@
 //! See `ARCHITECTURE.md` for the modules and the data flow
 //! (frame -> tracker -> decision -> API). Domain modules (`geometry`, `camera`, `mesh`,
 //! `render`, `sensor`, `dataset`, `generate`, `tracker`, `eval`, `grasp`, `symmetry`) never
-//! import axum or utoipa; `api` converts.
+//! import axum or utoipa; `service` (the runtime: registry, ingest, the worker, decisions,
+//! storage) takes domain types and knows no HTTP; `api` converts once at the edge; `tools`
+//! talk to a server over the network.
 
 pub mod api;
 pub mod camera;
@@ -15,7 +17,9 @@ pub mod grasp;
 pub mod mesh;
 pub mod render;
 pub mod sensor;
+pub mod service;
 pub mod symmetry;
+pub mod tools;
 pub mod tracker;
 
 /// Helpers of the unit tests.

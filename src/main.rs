@@ -22,7 +22,7 @@ enum Command {
     /// Run the HTTP service (with --demo: the built-in demo scene, dashboard included).
     Serve(pregrasp::api::cli::ServeArgs),
     /// Stream a sequence into a running server as a robot would.
-    Replay(pregrasp::api::cli::ReplayArgs),
+    Replay(pregrasp::tools::replay::ReplayArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -34,6 +34,6 @@ fn main() -> anyhow::Result<()> {
         Command::Generate(a) => pregrasp::generate::cli::run(a),
         Command::Eval(a) => pregrasp::eval::cli::run(a),
         Command::Serve(a) => pregrasp::api::cli::serve(a),
-        Command::Replay(a) => pregrasp::api::cli::replay(a),
+        Command::Replay(a) => pregrasp::tools::replay::cli(a),
     }
 }

@@ -1,9 +1,11 @@
 //! The crate's layering, read from its source: which top-level modules each module names
 //! (`crate::x` paths and `use crate::{x, ...}` groups), and which HTTP crates it uses.
 //!
-//! - Only `api` uses axum, utoipa, tower or hyper (the binary calls `api`).
+//! - Only `api` uses axum, utoipa, tower or hyper (the binary calls `api`); `service`, the
+//!   runtime below it, uses none of them.
 //! - The modules form layers: each names only modules of lower layers, so there is no cycle,
 //!   and sensors, data sets and the generator never depend on the filter.
+//! - Inside `api` and `service`, the files name each other without a cycle either.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -17,7 +19,10 @@ const LAYERS: &[&[&str]] = &[
     &["dataset"],
     &["generate", "tracker"],
     &["eval"],
-    &["api"],
+    // the runtime: registry, ingest, the worker, codebook builds, decisions, storage, demo
+    &["service"],
+    // HTTP over the service; tools talk to a server over the network only
+    &["api", "tools"],
 ];
 
 /// Crates that belong to the HTTP layer.
@@ -171,11 +176,96 @@ fn the_parser_sees_paths_groups_and_crates() {
 
 #[test]
 fn only_the_api_speaks_http() {
-    for (m, (_, http)) in graph() {
+    let g = graph();
+    for (m, (_, http)) in &g {
         if m != "api" {
             assert!(http.is_empty(), "{m} uses {http:?}: only api may");
         }
     }
+    assert!(!g["api"].1.is_empty(), "the parser finds api's HTTP crates");
+    assert!(g["service"].1.is_empty(), "service uses {:?}", g["service"].1);
+}
+
+/// The files of a module folder (`src/<module>/<file>.rs`, `mod.rs` as the module itself) with
+/// the sibling files each names (`super::x`, `crate::<module>::x`, `use super::{x, ...}`).
+fn file_graph(module: &str) -> BTreeMap<String, BTreeSet<String>> {
+    let dir = src().join(module);
+    let files: Vec<String> = std::fs::read_dir(&dir)
+        .expect("module folder")
+        .filter_map(|e| {
+            let p = e.expect("entry").path();
+            (p.extension().is_some_and(|x| x == "rs") && p.file_stem().is_some_and(|s| s != "mod"))
+                .then(|| p.file_stem().expect("stem").to_string_lossy().to_string())
+        })
+        .collect();
+    files
+        .iter()
+        .map(|f| {
+            let code = code_of(&dir.join(format!("{f}.rs")));
+            // `super::x` and `crate::module::x` name sibling x; only siblings count
+            let mut names = BTreeSet::new();
+            let prefixed = code.replace(&format!("crate::{module}::"), "crate::");
+            let as_crate = prefixed.replace("super::", "crate::");
+            // the test modules' `use super::*` is their own file
+            for n in crate_modules(&as_crate) {
+                if n != *f && files.contains(&n) {
+                    names.insert(n);
+                }
+            }
+            (f.clone(), names)
+        })
+        .collect()
+}
+
+fn assert_acyclic(module: &str, g: &BTreeMap<String, BTreeSet<String>>) {
+    // depth-first search for a back edge
+    fn visit(
+        n: &str,
+        g: &BTreeMap<String, BTreeSet<String>>,
+        state: &mut BTreeMap<String, u8>,
+        path: &mut Vec<String>,
+    ) -> Option<Vec<String>> {
+        match state.get(n) {
+            Some(1) => {
+                let i = path.iter().position(|p| p == n).unwrap_or(0);
+                let mut cycle = path[i..].to_vec();
+                cycle.push(n.to_string());
+                return Some(cycle);
+            }
+            Some(2) => return None,
+            _ => {}
+        }
+        state.insert(n.to_string(), 1);
+        path.push(n.to_string());
+        for m in g.get(n).into_iter().flatten() {
+            if let Some(c) = visit(m, g, state, path) {
+                return Some(c);
+            }
+        }
+        path.pop();
+        state.insert(n.to_string(), 2);
+        None
+    }
+    let mut state = BTreeMap::new();
+    for n in g.keys() {
+        if let Some(cycle) = visit(n, g, &mut state, &mut Vec::new()) {
+            panic!("files of {module} name each other in a cycle: {}", cycle.join(" -> "));
+        }
+    }
+}
+
+#[test]
+fn the_files_of_api_and_service_form_no_cycle() {
+    for module in ["api", "service"] {
+        let g = file_graph(module);
+        assert!(g.len() >= 5, "{module}: {g:?}");
+        assert_acyclic(module, &g);
+    }
+    // the checker sees a cycle when there is one
+    let mut g = BTreeMap::new();
+    g.insert("a".to_string(), BTreeSet::from(["b".to_string()]));
+    g.insert("b".to_string(), BTreeSet::from(["a".to_string()]));
+    assert!(std::panic::catch_unwind(|| assert_acyclic("test", &g)).is_err());
 }
 
 #[test]
@@ -200,4 +290,7 @@ fn modules_name_only_lower_layers() {
     for m in ["sensor", "dataset", "generate"] {
         assert!(!g[m].0.contains("tracker"), "{m} imports the tracker");
     }
+    // service sits above the filter, the decision and the metrics and below api
+    assert!(!g["service"].0.contains("api"), "service imports api");
+    assert!(g["api"].0.contains("service"), "api calls the service");
 }

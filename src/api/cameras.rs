@@ -1,12 +1,12 @@
 //! `/cameras`: registration of the cameras (intrinsics like ROS `CameraInfo`, mount).
 
+use super::AppState;
 use super::error::ApiError;
-use super::store::{Store, Table};
-use super::types::{ApiJson, IntrinsicsDto, PoseDto, check_id};
-use super::{AppState, Registry};
+use super::types::{ApiJson, IntrinsicsDto, PoseDto};
+use crate::sensor::CameraMount;
+use crate::service;
 use axum::Json;
 use axum::extract::{Path, State};
-use axum::response::IntoResponse;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 use utoipa_axum::router::OpenApiRouter;
@@ -39,96 +39,50 @@ pub struct Camera {
     pub mount: MountDto,
 }
 
-impl Camera {
-    pub fn is_robot(&self) -> bool {
-        matches!(self.mount, MountDto::Robot { .. })
+impl MountDto {
+    /// Validates the pose into a domain mount.
+    pub fn to_mount(&self) -> Result<CameraMount, ApiError> {
+        Ok(match self {
+            Self::Stationary { world_from_camera } => CameraMount::Stationary {
+                world_from_camera: world_from_camera.to_pose("mount.world_from_camera")?,
+            },
+            Self::Robot { base_from_camera } => CameraMount::Robot {
+                base_from_camera: base_from_camera.to_pose("mount.base_from_camera")?,
+            },
+        })
+    }
+    pub fn from_mount(m: &CameraMount) -> Self {
+        match m {
+            CameraMount::Stationary { world_from_camera } => Self::Stationary {
+                world_from_camera: PoseDto::from_pose(world_from_camera),
+            },
+            CameraMount::Robot { base_from_camera } => Self::Robot {
+                base_from_camera: PoseDto::from_pose(base_from_camera),
+            },
+        }
     }
 }
 
-/// The reference camera of the tracker: the first robot camera, else the first camera.
-pub fn reference_camera(reg: &Registry) -> Option<String> {
-    reg.cameras
-        .values()
-        .find(|c| c.is_robot())
-        .or_else(|| reg.cameras.values().next())
-        .map(|c| c.id.clone())
-}
-
-pub(super) fn load(store: &Store, reg: &mut Registry) -> anyhow::Result<()> {
-    for (id, cam) in store.list::<Camera>(Table::Cameras)? {
-        reg.cameras.insert(id, cam);
+impl From<&service::registry::Camera> for Camera {
+    fn from(c: &service::registry::Camera) -> Self {
+        Self {
+            id: c.id.clone(),
+            intrinsics: IntrinsicsDto::from_intrinsics(&c.intrinsics),
+            mount: MountDto::from_mount(&c.mount),
+        }
     }
-    Ok(())
 }
 
-pub fn router() -> OpenApiRouter<super::AppState> {
+pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
         .routes(routes!(list_cameras))
         .routes(routes!(get_camera, put_camera, delete_camera))
 }
 
-/// Validates a camera spec (intrinsics, poses) into a record.
-pub fn validate(id: &str, spec: CameraSpec) -> Result<Camera, ApiError> {
-    check_id("camera", id)?;
-    spec.intrinsics.to_intrinsics()?;
-    let k = &spec.intrinsics.k;
-    let (w, h) = (f64::from(spec.intrinsics.width), f64::from(spec.intrinsics.height));
-    // a focal length up to 100 image widths, a principal point within an image of the image
-    let plausible = k[0] <= 100.0 * w && k[4] <= 100.0 * h && k[2].abs() <= 2.0 * w && k[5].abs() <= 2.0 * h;
-    if !plausible {
-        return Err(ApiError::Invalid(format!(
-            "intrinsics: focal lengths must be at most 100 image sizes and the principal point within the image's neighbourhood, got k = {k:?}"
-        )));
-    }
-    match &spec.mount {
-        MountDto::Stationary { world_from_camera } => {
-            world_from_camera.to_pose("mount.world_from_camera")?;
-        }
-        MountDto::Robot { base_from_camera } => {
-            base_from_camera.to_pose("mount.base_from_camera")?;
-        }
-    }
-    Ok(Camera {
-        id: id.to_string(),
-        intrinsics: spec.intrinsics,
-        mount: spec.mount,
-    })
-}
-
-/// Registers (or replaces) a camera in the registry and the store; a replaced camera's waiting
-/// frames are freed (they were taken with the old intrinsics).
-pub fn register(state: &AppState, cam: Camera) -> Result<(), ApiError> {
-    let limits = state.config.limits;
-    let px = u64::from(cam.intrinsics.width) * u64::from(cam.intrinsics.height);
-    if px > limits.max_camera_pixels {
-        return Err(ApiError::LimitReached(format!(
-            "camera '{}' is {}x{} = {px} pixels; this server takes at most {} (--max-camera-pixels)",
-            cam.id, cam.intrinsics.width, cam.intrinsics.height, limits.max_camera_pixels
-        )));
-    }
-    let mut reg = state.registry_mut();
-    if cam.is_robot() && reg.cameras.values().any(|c| c.is_robot() && c.id != cam.id) {
-        return Err(ApiError::Conflict(
-            "only one robot camera is supported; delete the other robot camera first".into(),
-        ));
-    }
-    if !reg.cameras.contains_key(&cam.id) && reg.cameras.len() >= limits.max_cameras {
-        return Err(ApiError::LimitReached(format!(
-            "this server takes at most {} cameras (--max-cameras); delete one first",
-            limits.max_cameras
-        )));
-    }
-    state.store.put(Table::Cameras, &cam.id, &cam)?;
-    state.ingest().forget_camera(&cam.id);
-    reg.cameras.insert(cam.id.clone(), cam);
-    reg.version += 1;
-    Ok(())
-}
-
 #[utoipa::path(get, path = "/cameras", tag = "cameras",
     responses((status = 200, description = "All cameras", body = [Camera])))]
 async fn list_cameras(State(state): State<AppState>) -> Json<Vec<Camera>> {
-    Json(state.registry().cameras.values().cloned().collect())
+    Json(state.registry().cameras.values().map(Camera::from).collect())
 }
 
 #[utoipa::path(get, path = "/cameras/{id}", tag = "cameras",
@@ -139,8 +93,7 @@ async fn get_camera(State(state): State<AppState>, Path(id): Path<String>) -> Re
         .registry()
         .cameras
         .get(&id)
-        .cloned()
-        .map(Json)
+        .map(|c| Json(Camera::from(c)))
         .ok_or_else(|| ApiError::not_found("camera", id))
 }
 
@@ -154,10 +107,11 @@ async fn put_camera(
     State(state): State<AppState>,
     Path(id): Path<String>,
     ApiJson(spec): ApiJson<CameraSpec>,
-) -> Result<impl IntoResponse, ApiError> {
-    let cam = validate(&id, spec)?;
-    register(&state, cam.clone())?;
-    Ok(Json(cam))
+) -> Result<Json<Camera>, ApiError> {
+    let intrinsics = spec.intrinsics.to_intrinsics()?;
+    let mount = spec.mount.to_mount()?;
+    let cam = state.register_camera(&id, intrinsics, mount)?;
+    Ok(Json(Camera::from(&cam)))
 }
 
 #[utoipa::path(delete, path = "/cameras/{id}", tag = "cameras",
@@ -167,13 +121,6 @@ async fn delete_camera(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<super::error::Deleted, ApiError> {
-    let mut reg = state.registry_mut();
-    if !reg.cameras.contains_key(&id) {
-        return Err(ApiError::not_found("camera", id));
-    }
-    state.store.delete(Table::Cameras, &id)?;
-    state.ingest().forget_camera(&id);
-    reg.cameras.remove(&id);
-    reg.version += 1;
+    state.delete_camera(&id)?;
     Ok(super::error::Deleted)
 }

@@ -1,6 +1,7 @@
-//! `pregrasp serve` and `pregrasp replay`.
+//! `pregrasp serve`.
 
-use super::{ApiConfig, AppState, Limits};
+use super::{ApiConfig, AppState};
+use crate::service::Limits;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
@@ -90,30 +91,6 @@ fn parse_grid_step(s: &str) -> Result<u32, String> {
     Ok(v)
 }
 
-/// Options of `pregrasp replay`.
-#[derive(Debug, Clone, clap::Args)]
-pub struct ReplayArgs {
-    /// A sequence folder (the generator's multi-view BOP format).
-    #[arg(long)]
-    pub data: PathBuf,
-    /// Server base URL.
-    #[arg(long, default_value = "http://127.0.0.1:8080")]
-    pub server: String,
-    /// Playback rate (1 = real time; 0 = as fast as the server takes it).
-    #[arg(long, default_value_t = 1.0)]
-    pub rate: f64,
-    /// Bearer token.
-    #[arg(long, env = "PREGRASP_TOKEN", hide_env_values = true)]
-    pub token: Option<String>,
-    /// Write the answers (per robot frame: time, estimate, decision) as JSON.
-    #[arg(long)]
-    pub out: Option<PathBuf>,
-    /// Stream only: ask for no estimate or decision at each robot frame (a soak's streamer,
-    /// whose planners ask on their own).
-    #[arg(long)]
-    pub no_decisions: bool,
-}
-
 /// The default data folder.
 pub fn default_data_dir() -> PathBuf {
     dirs::data_dir().unwrap_or_else(std::env::temp_dir).join("pregrasp")
@@ -174,8 +151,8 @@ pub fn config_from(args: &ServeArgs) -> anyhow::Result<ApiConfig> {
     if config.allowed_hosts.is_empty() {
         tracing::warn!("listening on every interface with no --allowed-host: the Host header is not checked");
     }
-    config.accept_truth = args.accept_truth || args.demo;
-    config.limits = Limits {
+    config.service.accept_truth = args.accept_truth || args.demo;
+    config.service.limits = Limits {
         max_cameras: args.max_cameras,
         max_camera_pixels: args.max_camera_pixels,
         max_objects: args.max_objects,
@@ -188,13 +165,13 @@ pub fn config_from(args: &ServeArgs) -> anyhow::Result<ApiConfig> {
     config.request_timeout = std::time::Duration::from_secs(args.request_timeout_s.max(1));
     config.header_read_timeout = std::time::Duration::from_secs(args.header_read_timeout_s.max(1));
     config.max_connections = args.max_connections.max(1);
-    config.window_ns = i64::try_from(args.window_ms)
+    config.service.window_ns = i64::try_from(args.window_ms)
         .ok()
         .and_then(|ms| ms.checked_mul(1_000_000))
-        .filter(|ns| *ns <= super::ingest::MAX_STAMP_NS)
+        .filter(|ns| *ns <= crate::service::ingest::MAX_STAMP_NS)
         .ok_or_else(|| anyhow::anyhow!("--window-ms {} is too large", args.window_ms))?;
-    if args.codebook_step_deg < config.codebooks.coarse_step_deg {
-        config.codebooks.fine = Some((args.codebook_step_deg, crate::tracker::CodebookConfig::default()));
+    if args.codebook_step_deg < config.service.codebooks.coarse_step_deg {
+        config.service.codebooks.fine = Some((args.codebook_step_deg, crate::tracker::CodebookConfig::default()));
     }
     Ok(config)
 }
@@ -209,12 +186,12 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
         tracing::info!(
             "pregrasp listening on http://{} (data in {}, token {})",
             listener.local_addr()?,
-            config.data_dir.display(),
+            config.service.data_dir.display(),
             if config.token.is_some() { "required" } else { "off" }
         );
         let handle = super::start_background(&state);
         let demo = if args.demo {
-            Some(super::demo::start(state.clone())?)
+            Some(crate::service::demo::start(state.service.clone())?)
         } else {
             None
         };
@@ -264,13 +241,6 @@ pub async fn shutdown_signal() {
     #[cfg(not(unix))]
     let term = std::future::pending::<()>();
     tokio::select! { _ = ctrl_c => {}, _ = term => {} }
-}
-
-pub fn replay(args: ReplayArgs) -> anyhow::Result<()> {
-    let rt = tokio::runtime::Runtime::new()?;
-    let summary = rt.block_on(super::replay::run(args))?;
-    println!("{}", serde_json::to_string_pretty(&summary)?);
-    Ok(())
 }
 
 #[cfg(test)]

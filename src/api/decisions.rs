@@ -1,25 +1,22 @@
-//! `POST /tracks/{id}/decision`: grasp now or observe more? Draws poses from the track's
-//! distribution and calls `crate::grasp::decide`.
+//! `POST /tracks/{id}/decision`: grasp now or observe more? The request is converted once into
+//! the service's [`DecisionParams`]; the answer, a [`DecisionRecord`], into a [`DecisionView`]
+//! by the one conversion `From<&DecisionRecord>` below (new fields of `grasp::Decision` are
+//! added there).
 
 use super::AppState;
 use super::error::ApiError;
-use super::events::ServerEvent;
-use super::scene::{PlaneDto, validate_plane};
+use super::scene::PlaneDto;
 use super::types::{ApiJson, PoseDto};
-use crate::geometry::{Pose, PoseSamples};
-use crate::grasp::{self, DecisionQuery, Grasp, GraspObject, Gripper, SupportPlane};
+use crate::grasp;
+use crate::service::decisions::{DecisionParams, DecisionRecord};
 use axum::Json;
 use axum::extract::{Path, State};
 use serde::{Deserialize, Serialize};
-use std::collections::HashMap;
-use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex};
 use utoipa::ToSchema;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
-/// Most samples a query may ask for.
-pub const MAX_DECISION_SAMPLES: usize = 5_000;
+pub use crate::service::decisions::MAX_DECISION_SAMPLES;
 
 /// A grasp given by the caller (object frame).
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
@@ -44,221 +41,223 @@ pub struct DecisionRequest {
     pub threshold: Option<f64>,
 }
 
-/// What the tracker gives a decision: the estimate and samples in the reference frame.
-#[derive(Clone)]
-pub struct Drawn {
-    pub track_id: u64,
-    pub object_id: String,
-    pub reference_from_object: Pose,
-    pub samples: PoseSamples,
-    pub world_from_reference: Pose,
+impl DecisionRequest {
+    /// The service's parameters, defaults filled in and poses validated.
+    pub fn to_params(&self) -> Result<DecisionParams, ApiError> {
+        let defaults = DecisionParams::default();
+        Ok(DecisionParams {
+            gripper: self.gripper.clone().unwrap_or(defaults.gripper),
+            object_from_gripper: self
+                .grasp
+                .as_ref()
+                .map(|g| g.object_from_gripper.to_pose("grasp.object_from_gripper"))
+                .transpose()?,
+            support_plane_world: self.support_plane.map(grasp::SupportPlane::from),
+            n_samples: self.n_samples.unwrap_or(defaults.n_samples),
+            threshold: self.threshold.unwrap_or(defaults.threshold),
+        })
+    }
 }
 
-/// Solid shapes per mesh content hash (a convex decomposition takes up to a second; it is
-/// built once even when many decisions ask for it at the same time).
-#[derive(Default)]
-pub struct GraspObjects(Mutex<HashMap<String, Arc<Mutex<Option<GraspObject>>>>>);
+/// The answer: grasp now, or look more.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Verdict {
+    Grasp,
+    Observe,
+}
 
-impl GraspObjects {
-    pub fn get_or_build(&self, state: &AppState, object_id: &str) -> Result<GraspObject, ApiError> {
-        let (hash, mesh) = {
-            let reg = state.registry();
-            let o = reg
-                .objects
-                .get(object_id)
-                .ok_or_else(|| ApiError::not_found("object", object_id))?;
-            (o.info.content_hash.clone(), o.mesh.clone())
-        };
-        let slot = self
-            .0
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .entry(hash)
-            .or_default()
-            .clone();
-        let mut slot = slot.lock().unwrap_or_else(|p| p.into_inner());
-        if let Some(g) = slot.as_ref() {
-            return Ok(g.clone());
+/// The tests run on every sample.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum FailureTest {
+    /// The open gripper hits the object on its way in.
+    Approach,
+    /// A gripper part comes closer to the support plane than the clearance.
+    Table,
+    /// Closing does not bring both pads onto the object first.
+    Contact,
+    /// A pad contact lies outside the capture funnel (groove mouth / wall angle).
+    Alignment,
+}
+
+/// Translation or rotation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Motion {
+    Translation,
+    Rotation,
+}
+
+/// One direction of the pose uncertainty, in the gripper frame of the planned grasp.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct AxisDriver {
+    pub motion: Motion,
+    /// `gripper_x`, `gripper_y` or `gripper_z` (x = closing, z = approach).
+    pub axis: String,
+    /// The same axis in the reference (robot camera) frame.
+    pub axis_in_reference: [f64; 3],
+    /// The same axis in the object's frame at the estimate.
+    pub axis_in_object: [f64; 3],
+    /// Standard deviation of the samples' offset from the estimate along/about this axis
+    /// (metres or radians).
+    pub spread: f64,
+    /// How much of the uncertainty about failing this axis explains (0: independent, 1: the
+    /// offset decides).
+    pub failure_dependence: f64,
+}
+
+/// The share of samples failing one test and what drives it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct Reason {
+    pub test: FailureTest,
+    pub failure_share: f64,
+    /// Axes on whose offsets this failure depends, strongest first.
+    pub drivers: Vec<AxisDriver>,
+    pub message: String,
+}
+
+/// A grasp: where the gripper frame sits on the object (approach along gripper +z, closing
+/// along x).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct GraspView {
+    pub object_from_gripper: PoseDto,
+    /// Approach direction (gripper +z) in the object frame.
+    pub approach_in_object: [f64; 3],
+    /// Closing axis (gripper x) in the object frame.
+    pub closing_in_object: [f64; 3],
+    /// Depth of the tool centre point past the object's surface that faces the palm.
+    pub depth_m: f64,
+    /// Width of the object's hull along the closing axis.
+    pub width_m: f64,
+    /// Human-readable name, e.g. `approach -a2, close a1` (a0 = longest principal axis).
+    pub label: String,
+}
+
+/// A candidate grasp with its probability of success.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct RankedGrasp {
+    pub grasp: GraspView,
+    pub p_success: f64,
+    pub ci95: [f64; 2],
+    /// Samples it was evaluated on (fewer when screened out early).
+    pub n_samples: usize,
+}
+
+/// A decision with its context: the stamp of the distribution it used and the gripper pose in
+/// the reference (robot camera), robot base and world frames.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct DecisionView {
+    pub decision: Verdict,
+    /// Share of the samples on which the grasp succeeds.
+    pub p_success: f64,
+    /// 95 % Wilson interval on `p_success` over the effective sample size.
+    pub ci95: [f64; 2],
+    pub n_samples: usize,
+    pub effective_sample_size: f64,
+    pub threshold: f64,
+    /// Stamp of the estimate whose distribution the samples were drawn from, nanoseconds.
+    pub stamp_ns: i64,
+    pub grasp: GraspView,
+    /// The gripper in the reference (robot camera) frame.
+    pub reference_from_gripper: PoseDto,
+    /// The gripper in the robot's base frame (absent without a robot camera).
+    pub base_from_gripper: Option<PoseDto>,
+    /// The gripper in the world frame.
+    pub world_from_gripper: PoseDto,
+    /// One entry per test that fails on some sample, largest share first.
+    pub reasons: Vec<Reason>,
+    /// All six axes (3 translations, 3 rotations) with the dependence of failing on them,
+    /// strongest first.
+    pub uncertainty: Vec<AxisDriver>,
+    /// The candidates evaluated (only when the query gave no grasp), best first.
+    pub candidates: Vec<RankedGrasp>,
+}
+
+impl From<&grasp::AxisDriver> for AxisDriver {
+    fn from(a: &grasp::AxisDriver) -> Self {
+        Self {
+            motion: match a.motion {
+                grasp::Motion::Translation => Motion::Translation,
+                grasp::Motion::Rotation => Motion::Rotation,
+            },
+            axis: a.axis.clone(),
+            axis_in_reference: a.axis_in_reference,
+            axis_in_object: a.axis_in_object,
+            spread: a.spread,
+            failure_dependence: a.failure_dependence,
         }
-        let g = GraspObject::new(&mesh).map_err(|e| ApiError::Invalid(format!("object '{object_id}': {e}")))?;
-        *slot = Some(g.clone());
-        Ok(g)
     }
 }
 
-/// How long a track stays "watched" after a decision query: while watched, the tracking
-/// worker draws a bank of samples for it right after every step.
-pub const BANK_INTEREST: std::time::Duration = std::time::Duration::from_secs(30);
-
-/// Samples drawn by the tracking worker right after a step (`generation` = its step count).
-pub struct SampleBank {
-    pub generation: u64,
-    pub drawn: Drawn,
-}
-
-/// Decisions without waiting for the tracker: a planner's query reads the bank of samples
-/// the worker drew after the latest step (taking the tracker's lock only for a track nobody
-/// has asked about yet), and identical queries within one step share one answer.
-#[derive(Default)]
-pub struct DecisionCache {
-    banks: Mutex<HashMap<u64, Arc<SampleBank>>>,
-    /// Track -> (last query, most samples asked).
-    interest: Mutex<HashMap<u64, (std::time::Instant, usize)>>,
-    /// Track -> (generation, query key, answer).
-    answers: Mutex<HashMap<u64, (u64, String, serde_json::Value)>>,
-}
-
-impl DecisionCache {
-    fn note_interest(&self, track_id: u64, n: usize) {
-        let mut i = self.interest.lock().unwrap_or_else(|p| p.into_inner());
-        let e = i.entry(track_id).or_insert((std::time::Instant::now(), n));
-        e.0 = std::time::Instant::now();
-        e.1 = e.1.max(n);
-    }
-    /// The latest bank of a track when it holds at least `n` samples.
-    fn bank(&self, track_id: u64, n: usize) -> Option<Arc<SampleBank>> {
-        let b = self.banks.lock().unwrap_or_else(|p| p.into_inner());
-        b.get(&track_id).filter(|b| b.drawn.samples.poses.len() >= n).cloned()
-    }
-    /// Tracks watched now, with the samples to draw for each (forgets the stale ones).
-    pub fn watched(&self) -> Vec<(u64, usize)> {
-        let mut i = self.interest.lock().unwrap_or_else(|p| p.into_inner());
-        i.retain(|_, (t, _)| t.elapsed() < BANK_INTEREST);
-        i.iter().map(|(k, (_, n))| (*k, *n)).collect()
-    }
-    /// Replaces the banks (the worker, after a step); tracks not given lose theirs.
-    pub fn set_banks(&self, banks: Vec<SampleBank>) {
-        let mut b = self.banks.lock().unwrap_or_else(|p| p.into_inner());
-        b.clear();
-        for bank in banks {
-            b.insert(bank.drawn.track_id, Arc::new(bank));
+impl From<&grasp::Reason> for Reason {
+    fn from(r: &grasp::Reason) -> Self {
+        Self {
+            test: match r.test {
+                grasp::FailureTest::Approach => FailureTest::Approach,
+                grasp::FailureTest::Table => FailureTest::Table,
+                grasp::FailureTest::Contact => FailureTest::Contact,
+                grasp::FailureTest::Alignment => FailureTest::Alignment,
+            },
+            failure_share: r.failure_share,
+            drivers: r.drivers.iter().map(AxisDriver::from).collect(),
+            message: r.message.clone(),
         }
     }
-    /// Forgets everything about a track (stopped) or every track (tracker rebuilt).
-    pub fn forget(&self, track_id: Option<u64>) {
-        let mut b = self.banks.lock().unwrap_or_else(|p| p.into_inner());
-        let mut a = self.answers.lock().unwrap_or_else(|p| p.into_inner());
-        match track_id {
-            Some(id) => {
-                b.remove(&id);
-                a.remove(&id);
-            }
-            None => {
-                b.clear();
-                a.clear();
-            }
+}
+
+impl From<&grasp::Grasp> for GraspView {
+    fn from(g: &grasp::Grasp) -> Self {
+        Self {
+            object_from_gripper: PoseDto::from_pose(&g.object_from_gripper),
+            approach_in_object: g.approach_in_object,
+            closing_in_object: g.closing_in_object,
+            depth_m: g.depth_m,
+            width_m: g.width_m,
+            label: g.label.clone(),
         }
     }
-    fn answer(&self, track_id: u64, generation: u64, key: &str) -> Option<serde_json::Value> {
-        let a = self.answers.lock().unwrap_or_else(|p| p.into_inner());
-        a.get(&track_id)
-            .filter(|(g, k, _)| *g == generation && k == key)
-            .map(|(_, _, v)| v.clone())
+}
+
+impl From<&grasp::RankedGrasp> for RankedGrasp {
+    fn from(r: &grasp::RankedGrasp) -> Self {
+        Self {
+            grasp: (&r.grasp).into(),
+            p_success: r.p_success,
+            ci95: r.ci95,
+            n_samples: r.n_samples,
+        }
     }
-    fn store_answer(&self, track_id: u64, generation: u64, key: String, v: serde_json::Value) {
-        let mut a = self.answers.lock().unwrap_or_else(|p| p.into_inner());
-        a.insert(track_id, (generation, key, v));
+}
+
+/// The one conversion of a decision into its answer.
+impl From<&DecisionRecord> for DecisionView {
+    fn from(r: &DecisionRecord) -> Self {
+        let d = &r.decision;
+        Self {
+            decision: match d.decision {
+                grasp::Verdict::Grasp => Verdict::Grasp,
+                grasp::Verdict::Observe => Verdict::Observe,
+            },
+            p_success: d.p_success,
+            ci95: d.ci95,
+            n_samples: d.n_samples,
+            effective_sample_size: d.effective_sample_size,
+            threshold: d.threshold,
+            stamp_ns: r.stamp_ns,
+            grasp: (&d.grasp).into(),
+            reference_from_gripper: PoseDto::from_pose(&r.reference_from_gripper()),
+            base_from_gripper: r.base_from_gripper().as_ref().map(PoseDto::from_pose),
+            world_from_gripper: PoseDto::from_pose(&r.world_from_gripper()),
+            reasons: d.reasons.iter().map(Reason::from).collect(),
+            uncertainty: d.uncertainty.iter().map(AxisDriver::from).collect(),
+            candidates: d.candidates.iter().map(RankedGrasp::from).collect(),
+        }
     }
 }
 
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new().routes(routes!(post_decision))
-}
-
-/// A decision with its poses as `{rotation_xyzw, translation_m}` and the gripper in the world.
-pub fn decision_view(d: &grasp::Decision, world_from_reference: &Pose) -> serde_json::Value {
-    let mut v = serde_json::to_value(d).unwrap_or_default();
-    let pose = |p: &Pose| serde_json::to_value(PoseDto::from_pose(p)).unwrap_or_default();
-    v["reference_from_gripper"] = pose(&d.reference_from_gripper);
-    v["world_from_gripper"] = pose(&(world_from_reference * d.reference_from_gripper));
-    v["grasp"]["object_from_gripper"] = pose(&d.grasp.object_from_gripper);
-    if let Some(cands) = v["candidates"].as_array_mut() {
-        for (c, r) in cands.iter_mut().zip(&d.candidates) {
-            c["grasp"]["object_from_gripper"] = pose(&r.grasp.object_from_gripper);
-        }
-    }
-    v
-}
-
-/// Runs a decision for a track (blocking: call from a blocking context).
-pub fn decide_blocking(state: &AppState, track_id: u64, req: &DecisionRequest) -> Result<serde_json::Value, ApiError> {
-    let gripper_id = req.gripper.as_deref().unwrap_or(super::grippers::DEFAULT_GRIPPER);
-    let gripper: Gripper = super::grippers::gripper(state, gripper_id)?;
-    let n = req.n_samples.unwrap_or(grasp::decision::DEFAULT_N_SAMPLES);
-    if n == 0 || n > MAX_DECISION_SAMPLES {
-        return Err(ApiError::Invalid(format!(
-            "n_samples must be in 1..={MAX_DECISION_SAMPLES}, got {n}"
-        )));
-    }
-    let threshold = req.threshold.unwrap_or(grasp::decision::DEFAULT_THRESHOLD);
-    if !(threshold > 0.0 && threshold <= 1.0) {
-        return Err(ApiError::Invalid(format!(
-            "threshold must be in (0, 1], got {threshold}"
-        )));
-    }
-    let plane_world = match &req.support_plane {
-        Some(p) => Some(validate_plane(p)?),
-        None => *state.support_plane.lock().unwrap_or_else(|p| p.into_inner()),
-    };
-    let grasp_pose = req
-        .grasp
-        .as_ref()
-        .map(|g| g.object_from_gripper.to_pose("grasp.object_from_gripper"))
-        .transpose()?;
-    if !state.tracking.board().views.contains_key(&track_id) {
-        return Err(ApiError::not_found("track", track_id.to_string()));
-    }
-    state.decision_cache.note_interest(track_id, n);
-    let bank = state.decision_cache.bank(track_id, n);
-    // identical queries within one step share one answer (the samples are the same)
-    let key = serde_json::to_string(&(req, &gripper)).unwrap_or_default();
-    if let Some(b) = &bank
-        && let Some(v) = state.decision_cache.answer(track_id, b.generation, &key)
-    {
-        state.metrics.decisions.fetch_add(1, Ordering::Relaxed);
-        state.metrics.decisions_from_bank.fetch_add(1, Ordering::Relaxed);
-        state.metrics.decisions_shared.fetch_add(1, Ordering::Relaxed);
-        return Ok(v);
-    }
-    let drawn = match &bank {
-        Some(b) => {
-            state.metrics.decisions_from_bank.fetch_add(1, Ordering::Relaxed);
-            let mut d = b.drawn.clone();
-            d.samples.poses.truncate(n);
-            d.samples.effective_sample_size = d.samples.effective_sample_size.min(n as f64);
-            d
-        }
-        None => super::worker::draw_samples(state, track_id, n)?,
-    };
-    let object = state.grasp_objects.get_or_build(state, &drawn.object_id)?;
-    let support_plane = plane_world.map(|p| {
-        SupportPlane {
-            normal: p.normal,
-            point_m: p.point_m,
-        }
-        .transformed(&drawn.world_from_reference.inverse())
-    });
-    let query = DecisionQuery {
-        n_samples: n,
-        threshold,
-        grasp: grasp_pose.map(|p| Grasp::from_pose(&object, p, "client")),
-        support_plane,
-    };
-    let d = grasp::decide(&object, &gripper, &drawn.reference_from_object, &drawn.samples, &query)
-        .map_err(|e| ApiError::Invalid(format!("decision: {e}")))?;
-    let view = decision_view(&d, &drawn.world_from_reference);
-    if let Some(b) = &bank {
-        state
-            .decision_cache
-            .store_answer(track_id, b.generation, key, view.clone());
-    }
-    state.metrics.decisions.fetch_add(1, Ordering::Relaxed);
-    state.tracking.set_decision(track_id, view.clone());
-    state.publish(ServerEvent::Decision {
-        track_id,
-        decision: view.clone(),
-    });
-    Ok(view)
 }
 
 /// Grasp now, or look more?
@@ -273,17 +272,20 @@ pub fn decide_blocking(state: &AppState, track_id: u64, req: &DecisionRequest) -
 #[utoipa::path(post, path = "/tracks/{id}/decision", tag = "decisions",
     params(("id" = u64, Path, description = "Track id")),
     request_body = DecisionRequest,
-    responses((status = 200, description = "The decision of crate::grasp (verdict, p_success, ci95, reasons, grasp, reference_from_gripper, world_from_gripper)", body = Object),
-        (status = 404, body = super::error::Problem), (status = 422, body = super::error::Problem),
+    responses((status = 200, description = "The decision with the stamp of the distribution it used and the gripper in the reference, base and world frames", body = DecisionView),
+        (status = 404, description = "No such track or gripper", body = super::error::Problem),
+        (status = 409, description = "No grasp of this gripper fits the object, or its mesh cannot be grasped", body = super::error::Problem),
+        (status = 422, body = super::error::Problem),
         (status = 503, description = "The track has no distribution yet", body = super::error::Problem)))]
 async fn post_decision(
     State(state): State<AppState>,
     Path(id): Path<String>,
     ApiJson(req): ApiJson<DecisionRequest>,
-) -> Result<Json<serde_json::Value>, ApiError> {
+) -> Result<Json<DecisionView>, ApiError> {
     let id: u64 = id
         .parse()
         .map_err(|_| ApiError::Malformed(format!("track id '{id}' is not a non-negative integer")))?;
+    let params = req.to_params()?;
     // At most one decision per core at a time (a fair queue), so that a burst of clients
     // neither thrashes the cores nor starves the tracker.
     let _permit = state
@@ -292,8 +294,9 @@ async fn post_decision(
         .acquire_owned()
         .await
         .map_err(ApiError::internal)?;
-    let v = tokio::task::spawn_blocking(move || decide_blocking(&state, id, &req))
+    let service = state.service.clone();
+    let record = tokio::task::spawn_blocking(move || service.decide(id, &params))
         .await
         .map_err(ApiError::internal)??;
-    Ok(Json(v))
+    Ok(Json(DecisionView::from(&*record)))
 }

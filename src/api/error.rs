@@ -1,6 +1,8 @@
 //! The one error type of the HTTP service. Every failure becomes an RFC 9457 problem document
 //! (`application/problem+json`); this file is the only place where HTTP status codes appear.
 
+use crate::grasp::GraspError;
+use crate::service::ServiceError;
 use axum::extract::multipart::{MultipartError, MultipartRejection};
 use axum::extract::rejection::{BytesRejection, JsonRejection, PathRejection, QueryRejection};
 use axum::http::{StatusCode, header};
@@ -216,9 +218,37 @@ impl From<QueryRejection> for ApiError {
     }
 }
 
-impl From<redb::Error> for ApiError {
-    fn from(e: redb::Error) -> Self {
-        Self::Internal(format!("store: {e}"))
+/// The service's errors, each once into the answer it is: the status of every service and
+/// grasp failure is chosen here.
+impl From<ServiceError> for ApiError {
+    fn from(e: ServiceError) -> Self {
+        match e {
+            ServiceError::Invalid(m) => Self::Invalid(m),
+            ServiceError::NotFound { kind, id } => Self::NotFound { kind, id },
+            ServiceError::Conflict(m) => Self::Conflict(m),
+            ServiceError::Stale(m) => Self::Stale(m),
+            ServiceError::NotReady(m) => Self::NotReady(m),
+            ServiceError::NoFrameYet(m) => Self::NoFrameYet(m),
+            ServiceError::LimitReached(m) => Self::LimitReached(m),
+            ServiceError::Disabled(m) => Self::Disabled(m),
+            ServiceError::Internal(m) => Self::Internal(m),
+            ServiceError::Grasp(g) => {
+                let detail = format!("decision: {g}");
+                match g {
+                    // the caller's query or gripper: an invalid value (422)
+                    GraspError::InvalidGripper(_) | GraspError::GripperJson(_) | GraspError::InvalidQuery(_) => {
+                        Self::Invalid(detail)
+                    }
+                    // the registered object and gripper cannot make a grasp: a conflict with
+                    // what is registered (409), not a malformed request
+                    GraspError::InvalidMesh(_) | GraspError::NoCandidate(_) => Self::Conflict(detail),
+                    // the track has no samples to decide on yet (503)
+                    GraspError::NoSamples => Self::NotReady(detail),
+                    // a geometry query parry3d cannot answer, a file on the server: our fault
+                    GraspError::Unsupported(_) | GraspError::GripperFile { .. } => Self::Internal(detail),
+                }
+            }
+        }
     }
 }
 
@@ -275,6 +305,21 @@ pub(crate) fn response_to_problem(resp: &Response) -> Option<ApiError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn each_service_and_grasp_error_has_its_status() {
+        let status = |e: ServiceError| ApiError::from(e).problem().status;
+        assert_eq!(status(ServiceError::not_found("track", "7")), 404);
+        assert_eq!(status(ServiceError::Invalid("x".into())), 422);
+        assert_eq!(status(ServiceError::Stale("x".into())), 409);
+        assert_eq!(status(ServiceError::NotReady("x".into())), 503);
+        assert_eq!(status(ServiceError::Grasp(GraspError::InvalidQuery("x".into()))), 422);
+        assert_eq!(status(ServiceError::Grasp(GraspError::InvalidGripper("x".into()))), 422);
+        assert_eq!(status(ServiceError::Grasp(GraspError::NoCandidate("x".into()))), 409);
+        assert_eq!(status(ServiceError::Grasp(GraspError::InvalidMesh("x".into()))), 409);
+        assert_eq!(status(ServiceError::Grasp(GraspError::NoSamples)), 503);
+        assert_eq!(status(ServiceError::Grasp(GraspError::Unsupported("x".into()))), 500);
+    }
 
     #[test]
     fn problem_documents_carry_status_and_detail() {

@@ -9,10 +9,10 @@
 
 use super::AppState;
 use super::error::{Accepted, ApiError};
-use super::events::ServerEvent;
-use super::ingest::{IngestError, IngestedFrame, OdometryMsg, check_stamp};
 use super::types::{ApiJson, DetectionDto, IntrinsicsDto, PoseDto};
 use crate::camera::{ColorImage, DepthImage};
+use crate::sensor::{CameraFrame, Detection};
+use crate::service::ingest::{FrameReceipt, IngestedFrame, OdometryMsg, check_stamp};
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::{FromRequest, Multipart, Path, Request, State};
@@ -20,7 +20,6 @@ use axum::http::header;
 use axum::response::IntoResponse;
 use base64::Engine;
 use serde::{Deserialize, Serialize};
-use std::sync::atomic::Ordering;
 use std::time::Instant;
 use utoipa::ToSchema;
 use utoipa_axum::router::OpenApiRouter;
@@ -86,6 +85,23 @@ pub struct FrameAccepted {
     pub queue_depth: usize,
     /// Waiting frames of this camera dropped to make room (drop-oldest policy).
     pub dropped: usize,
+}
+
+impl From<FrameReceipt> for FrameAccepted {
+    fn from(r: FrameReceipt) -> Self {
+        Self {
+            camera: r.camera,
+            stamp_ns: r.stamp_ns,
+            queue_depth: r.queue_depth,
+            dropped: r.dropped,
+        }
+    }
+}
+
+/// The answer to an accepted odometry message or ground truth.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct StampAccepted {
+    pub stamp_ns: i64,
 }
 
 /// An odometry message like ROS `nav_msgs/Odometry` plus localisation.
@@ -237,82 +253,9 @@ pub fn decode_color(bytes: &[u8], intr: &IntrinsicsDto) -> Result<ColorImage, Ap
     ColorImage::new(w, h, data).map_err(|e| ApiError::Invalid(format!("color: {e}")))
 }
 
-/// Checks a stamp at the edge (see [`super::ingest::MAX_STAMP_NS`]).
+/// Checks a stamp at the edge (see [`crate::service::ingest::MAX_STAMP_NS`]).
 pub fn validate_stamp(what: &str, stamp_ns: i64) -> Result<(), ApiError> {
     check_stamp(stamp_ns).map_err(|e| ApiError::Invalid(format!("{what}: {e}")))
-}
-
-/// Most detections in one frame.
-pub const MAX_DETECTIONS_PER_FRAME: usize = 256;
-
-/// Checks detections: known objects, a score in 0..=1, a box of positive size inside the image.
-fn check_detections(state: &AppState, dets: &[DetectionDto], intr: &IntrinsicsDto) -> Result<(), ApiError> {
-    if dets.len() > MAX_DETECTIONS_PER_FRAME {
-        return Err(ApiError::Invalid(format!(
-            "a frame carries at most {MAX_DETECTIONS_PER_FRAME} detections, got {}",
-            dets.len()
-        )));
-    }
-    let reg = state.registry();
-    let (w, h) = (f64::from(intr.width), f64::from(intr.height));
-    for d in dets {
-        if !reg.objects.contains_key(&d.object) {
-            return Err(ApiError::Invalid(format!(
-                "detection names unknown object '{}'",
-                super::types::shorten(&d.object)
-            )));
-        }
-        let b = d.bbox_xywh_px;
-        let inside = b.iter().all(|v| v.is_finite())
-            && b[0] >= 0.0
-            && b[1] >= 0.0
-            && b[2] > 0.0
-            && b[3] > 0.0
-            && b[0] + b[2] <= w
-            && b[1] + b[3] <= h;
-        if !inside || !(0.0..=1.0).contains(&d.score) {
-            return Err(ApiError::Invalid(format!(
-                "detection of '{}' needs a box of positive size inside the {w}x{h} image and a score in 0..=1, got {b:?} score {}",
-                d.object, d.score
-            )));
-        }
-    }
-    Ok(())
-}
-
-/// Validates and queues one frame (used by the handler and by the demo).
-pub fn ingest_frame(state: &AppState, frame: IngestedFrame) -> Result<FrameAccepted, ApiError> {
-    let (camera, stamp_ns) = (frame.camera.clone(), frame.stamp_ns);
-    let pushed = state.ingest().push_frame(frame);
-    match pushed {
-        Ok(super::ingest::Pushed { dropped, clock_reset }) => {
-            if clock_reset {
-                tracing::info!("camera '{camera}' restarted its clock (stamp {stamp_ns} ns); its queue starts over");
-            }
-            state.metrics.frames_accepted.fetch_add(1, Ordering::Relaxed);
-            state
-                .metrics
-                .frames_dropped
-                .fetch_add(dropped as u64, Ordering::Relaxed);
-            state.wake.notify_one();
-            state.publish(ServerEvent::Frame {
-                camera: camera.clone(),
-                stamp_ns,
-            });
-            Ok(FrameAccepted {
-                camera,
-                stamp_ns,
-                queue_depth: state.ingest().pending(),
-                dropped,
-            })
-        }
-        Err(e @ (IngestError::TooOld { .. } | IngestError::Duplicate { .. })) => {
-            state.metrics.frames_stale.fetch_add(1, Ordering::Relaxed);
-            Err(ApiError::Stale(e.to_string()))
-        }
-        Err(e @ IngestError::BadStamp { .. }) => Err(ApiError::Invalid(e.to_string())),
-        Err(e) => Err(ApiError::Stale(e.to_string())),
-    }
 }
 
 #[utoipa::path(post, path = "/cameras/{id}/frames", tag = "ingest",
@@ -330,12 +273,13 @@ async fn post_frame(
     req: Request,
 ) -> Result<Accepted<FrameAccepted>, ApiError> {
     let received = Instant::now();
-    let intr = state
+    let intrinsics = state
         .registry()
         .cameras
         .get(&id)
         .map(|c| c.intrinsics)
         .ok_or_else(|| ApiError::not_found("camera", id.clone()))?;
+    let intr = IntrinsicsDto::from_intrinsics(&intrinsics);
     let ct = req
         .headers()
         .get(header::CONTENT_TYPE)
@@ -391,22 +335,23 @@ async fn post_frame(
         )));
     };
     validate_stamp("stamp_ns", stamp_ns)?;
-    check_detections(&state, &detections, &intr)?;
-    let frame = tokio::task::spawn_blocking(move || -> Result<IngestedFrame, ApiError> {
+    let detections: Vec<Detection> = detections.into_iter().map(Detection::from).collect();
+    state.check_detections(&detections, intr.width, intr.height)?;
+    let frame = tokio::task::spawn_blocking(move || -> Result<CameraFrame, ApiError> {
         let depth = decode_depth(&depth_bytes, encoding, scale, &intr)?;
         let color = color_bytes.map(|b| decode_color(&b, &intr)).transpose()?;
-        Ok(IngestedFrame {
+        Ok(CameraFrame {
             camera: id,
             stamp_ns,
+            intrinsics,
             depth,
             color,
             detections,
-            received,
         })
     })
     .await
     .map_err(ApiError::internal)??;
-    Ok(Accepted(ingest_frame(&state, frame)?))
+    Ok(Accepted(state.ingest_frame(frame, received)?.into()))
 }
 
 /// Largest magnitude of an odometry covariance entry (m^2, rad^2).
@@ -445,25 +390,16 @@ pub fn validate_odometry(o: &OdometryIn) -> Result<OdometryMsg, ApiError> {
 
 #[utoipa::path(post, path = "/odometry", tag = "ingest",
     request_body = OdometryIn,
-    responses((status = 202, description = "Accepted"), (status = 409, body = super::error::Problem),
+    responses((status = 202, description = "Accepted", body = StampAccepted),
+        (status = 409, description = "Older than the window behind the newest odometry", body = super::error::Problem),
         (status = 422, body = super::error::Problem)))]
 async fn post_odometry(
     State(state): State<AppState>,
     ApiJson(o): ApiJson<OdometryIn>,
-) -> Result<Accepted<serde_json::Value>, ApiError> {
+) -> Result<Accepted<StampAccepted>, ApiError> {
     let msg = validate_odometry(&o)?;
-    let reset = state.ingest().push_odometry(msg).map_err(|e| match e {
-        IngestError::BadStamp { .. } => ApiError::Invalid(e.to_string()),
-        e => ApiError::Stale(e.to_string()),
-    })?;
-    if reset {
-        tracing::info!(
-            "odometry restarted its clock (stamp {} ns); tracking starts over",
-            o.stamp_ns
-        );
-    }
-    state.metrics.odometry_accepted.fetch_add(1, Ordering::Relaxed);
-    Ok(Accepted(serde_json::json!({ "stamp_ns": o.stamp_ns })))
+    state.ingest_odometry(msg)?;
+    Ok(Accepted(StampAccepted { stamp_ns: o.stamp_ns }))
 }
 
 fn latest(state: &AppState, id: &str) -> Result<std::sync::Arc<IngestedFrame>, ApiError> {
@@ -485,7 +421,15 @@ async fn get_latest(State(state): State<AppState>, Path(id): Path<String>) -> Re
     Ok(Json(LatestFrame {
         camera: id,
         stamp_ns: f.stamp_ns,
-        detections: f.detections.clone(),
+        detections: f
+            .detections
+            .iter()
+            .map(|d| DetectionDto {
+                object: d.object.clone(),
+                bbox_xywh_px: d.bbox_xywh_px,
+                score: d.score,
+            })
+            .collect(),
         has_color: f.color.is_some(),
     }))
 }

@@ -1,10 +1,9 @@
-//! `/grippers`: gripper models (the JSON of `crate::grasp::Gripper`).
+//! `/grippers`: gripper models (typed mirrors of `crate::grasp::Gripper`).
 
+use super::AppState;
 use super::error::ApiError;
-use super::store::{Store, Table};
-use super::types::{ApiJson, check_id};
-use super::{AppState, Registry};
-use crate::grasp::Gripper;
+use super::types::ApiJson;
+use crate::grasp::{Gripper, PadGeometry};
 use axum::Json;
 use axum::extract::{Path, State};
 use serde::{Deserialize, Serialize};
@@ -12,72 +11,94 @@ use utoipa::ToSchema;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
+pub use crate::service::registry::DEFAULT_GRIPPER;
+
+/// Finger pad geometry and its capture funnel.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PadGeometryDto {
+    /// Length of the pad along the approach axis, measured from the finger tip.
+    pub length_m: f64,
+    /// Thickness of the pad slab on the finger's inner face (its collision volume).
+    pub thickness_m: f64,
+    /// Half-width of the V-groove's mouth across the pad (along gripper y).
+    pub groove_half_width_m: f64,
+    /// Angle of the groove walls (and tip chamfer) from the pad plane.
+    pub capture_angle_deg: f64,
+}
+
+/// A parallel-jaw gripper: the gripper frame has +z along the approach and x along the
+/// closing direction (see `crate::grasp::Gripper`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct GripperDto {
+    pub name: String,
+    /// Palm box size (x, y, z).
+    pub palm_size_m: [f64; 3],
+    /// Finger box: thickness (x), width (y), length (z).
+    pub finger_size_m: [f64; 3],
+    /// Largest distance between the pads (the stroke).
+    pub max_opening_m: f64,
+    /// Smallest distance between the pads (fully closed).
+    pub min_opening_m: f64,
+    pub pad: PadGeometryDto,
+    /// Distance of the pre-grasp pose before the grasp pose along the approach axis.
+    pub approach_distance_m: f64,
+    /// Least distance between any gripper part and the support plane.
+    pub table_clearance_m: f64,
+}
+
+impl From<&Gripper> for GripperDto {
+    fn from(g: &Gripper) -> Self {
+        Self {
+            name: g.name.clone(),
+            palm_size_m: g.palm_size_m,
+            finger_size_m: g.finger_size_m,
+            max_opening_m: g.max_opening_m,
+            min_opening_m: g.min_opening_m,
+            pad: PadGeometryDto {
+                length_m: g.pad.length_m,
+                thickness_m: g.pad.thickness_m,
+                groove_half_width_m: g.pad.groove_half_width_m,
+                capture_angle_deg: g.pad.capture_angle_deg,
+            },
+            approach_distance_m: g.approach_distance_m,
+            table_clearance_m: g.table_clearance_m,
+        }
+    }
+}
+
+impl From<GripperDto> for Gripper {
+    fn from(g: GripperDto) -> Self {
+        Self {
+            name: g.name,
+            palm_size_m: g.palm_size_m,
+            finger_size_m: g.finger_size_m,
+            max_opening_m: g.max_opening_m,
+            min_opening_m: g.min_opening_m,
+            pad: PadGeometry {
+                length_m: g.pad.length_m,
+                thickness_m: g.pad.thickness_m,
+                groove_half_width_m: g.pad.groove_half_width_m,
+                capture_angle_deg: g.pad.capture_angle_deg,
+            },
+            approach_distance_m: g.approach_distance_m,
+            table_clearance_m: g.table_clearance_m,
+        }
+    }
+}
+
 /// A registered gripper.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct GripperRecord {
     pub id: String,
-    /// The gripper model (see `crate::grasp::Gripper`).
-    #[schema(value_type = Object)]
-    pub gripper: serde_json::Value,
-}
-
-pub(super) fn load(store: &Store, reg: &mut Registry) -> anyhow::Result<()> {
-    for (id, g) in store.list::<serde_json::Value>(Table::Grippers)? {
-        reg.grippers.insert(id, g);
-    }
-    if !reg.grippers.contains_key(DEFAULT_GRIPPER) {
-        let g = serde_json::to_value(Gripper::default_parallel_jaw())?;
-        store.put(Table::Grippers, DEFAULT_GRIPPER, &g)?;
-        reg.grippers.insert(DEFAULT_GRIPPER.to_string(), g);
-    }
-    Ok(())
+    pub gripper: GripperDto,
 }
 
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
         .routes(routes!(list_grippers))
         .routes(routes!(get_gripper, put_gripper, delete_gripper))
-}
-
-/// Id of the gripper every server has (the default parallel-jaw gripper).
-pub const DEFAULT_GRIPPER: &str = "default";
-
-/// Checks a gripper document (the fields of `crate::grasp::Gripper`, all required, nothing
-/// else) and its geometry; returns it normalised.
-pub fn validate(value: serde_json::Value) -> Result<serde_json::Value, ApiError> {
-    let g: Gripper = serde_json::from_value(value).map_err(|e| ApiError::Invalid(format!("gripper: {e}")))?;
-    g.validate().map_err(|e| ApiError::Invalid(e.to_string()))?;
-    serde_json::to_value(&g).map_err(ApiError::internal)
-}
-
-/// The gripper model of a registered id.
-pub fn gripper(state: &AppState, id: &str) -> Result<Gripper, ApiError> {
-    let v = state
-        .registry()
-        .grippers
-        .get(id)
-        .cloned()
-        .ok_or_else(|| ApiError::not_found("gripper", id))?;
-    serde_json::from_value(v).map_err(|e| ApiError::Internal(format!("stored gripper {id}: {e}")))
-}
-
-/// Registers (or replaces) a gripper.
-pub fn register(state: &AppState, id: &str, gripper: serde_json::Value) -> Result<GripperRecord, ApiError> {
-    check_id("gripper", id)?;
-    let gripper = validate(gripper)?;
-    let mut reg = state.registry_mut();
-    let max = state.config.limits.max_grippers;
-    if !reg.grippers.contains_key(id) && reg.grippers.len() >= max {
-        return Err(ApiError::LimitReached(format!(
-            "this server takes at most {max} grippers (--max-grippers); delete one first"
-        )));
-    }
-    state.store.put(Table::Grippers, id, &gripper)?;
-    reg.grippers.insert(id.to_string(), gripper.clone());
-    Ok(GripperRecord {
-        id: id.to_string(),
-        gripper,
-    })
 }
 
 #[utoipa::path(get, path = "/grippers", tag = "grippers", responses((status = 200, body = [GripperRecord])))]
@@ -89,7 +110,7 @@ async fn list_grippers(State(state): State<AppState>) -> Json<Vec<GripperRecord>
             .iter()
             .map(|(id, g)| GripperRecord {
                 id: id.clone(),
-                gripper: g.clone(),
+                gripper: g.into(),
             })
             .collect(),
     )
@@ -99,26 +120,29 @@ async fn list_grippers(State(state): State<AppState>) -> Json<Vec<GripperRecord>
     params(("id" = String, Path, description = "Gripper id")),
     responses((status = 200, body = GripperRecord), (status = 404, body = super::error::Problem)))]
 async fn get_gripper(State(state): State<AppState>, Path(id): Path<String>) -> Result<Json<GripperRecord>, ApiError> {
-    let reg = state.registry();
-    let g = reg
-        .grippers
-        .get(&id)
-        .ok_or_else(|| ApiError::not_found("gripper", id.clone()))?;
-    Ok(Json(GripperRecord { id, gripper: g.clone() }))
+    let g = state.gripper(&id)?;
+    Ok(Json(GripperRecord {
+        id,
+        gripper: (&g).into(),
+    }))
 }
 
 #[utoipa::path(put, path = "/grippers/{id}", tag = "grippers",
     params(("id" = String, Path, description = "Gripper id")),
-    request_body(content = Object, description = "The gripper model"),
+    request_body = GripperDto,
     responses((status = 200, body = GripperRecord), (status = 400, body = super::error::Problem),
         (status = 409, description = "The gripper cap is reached", body = super::error::Problem),
         (status = 415, body = super::error::Problem), (status = 422, body = super::error::Problem)))]
 async fn put_gripper(
     State(state): State<AppState>,
     Path(id): Path<String>,
-    ApiJson(gripper): ApiJson<serde_json::Value>,
+    ApiJson(gripper): ApiJson<GripperDto>,
 ) -> Result<Json<GripperRecord>, ApiError> {
-    Ok(Json(register(&state, &id, gripper)?))
+    let g = state.register_gripper(&id, gripper.into())?;
+    Ok(Json(GripperRecord {
+        id,
+        gripper: (&g).into(),
+    }))
 }
 
 #[utoipa::path(delete, path = "/grippers/{id}", tag = "grippers",
@@ -128,11 +152,6 @@ async fn delete_gripper(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<super::error::Deleted, ApiError> {
-    let mut reg = state.registry_mut();
-    if !reg.grippers.contains_key(&id) {
-        return Err(ApiError::not_found("gripper", id));
-    }
-    state.store.delete(Table::Grippers, &id)?;
-    reg.grippers.remove(&id);
+    state.delete_gripper(&id)?;
     Ok(super::error::Deleted)
 }

@@ -25,7 +25,43 @@ pub struct Health {
     pub tracks: usize,
     pub queue_depth: usize,
     /// The caps this server was started with (`serve --max-*`).
-    pub limits: super::Limits,
+    pub limits: Limits,
+}
+
+/// Caps on what clients can make the server hold (each a `serve` option).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+pub struct Limits {
+    /// Registered cameras.
+    pub max_cameras: usize,
+    /// Pixels of one camera image (width x height); frames wait in memory.
+    pub max_camera_pixels: u64,
+    /// Registered objects (each holds a mesh and its codebooks).
+    pub max_objects: usize,
+    /// Registered grippers.
+    pub max_grippers: usize,
+    /// Tracks of one object (started by clients or by detections).
+    pub max_tracks_per_object: usize,
+    /// Tracks in all.
+    pub max_tracks: usize,
+    /// Longest display name, characters (ids: 64).
+    pub max_name_chars: usize,
+    /// Codebook files kept in the cache folder (the least recently written go first).
+    pub max_cached_codebooks: usize,
+}
+
+impl From<crate::service::Limits> for Limits {
+    fn from(l: crate::service::Limits) -> Self {
+        Self {
+            max_cameras: l.max_cameras,
+            max_camera_pixels: l.max_camera_pixels,
+            max_objects: l.max_objects,
+            max_grippers: l.max_grippers,
+            max_tracks_per_object: l.max_tracks_per_object,
+            max_tracks: l.max_tracks,
+            max_name_chars: l.max_name_chars,
+            max_cached_codebooks: l.max_cached_codebooks,
+        }
+    }
 }
 
 pub fn router() -> OpenApiRouter<AppState> {
@@ -45,7 +81,7 @@ async fn healthz(State(state): State<AppState>) -> Json<Health> {
         objects,
         tracks: state.tracking.track_count(),
         queue_depth: state.ingest().pending(),
-        limits: state.config.limits,
+        limits: state.config.service.limits.into(),
     })
 }
 
@@ -147,7 +183,7 @@ async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
             s,
             "# HELP {name} Restarted clocks (a camera's or the odometry's stamps jumped back)\n# TYPE {name} counter\n{name} {v}"
         );
-        let l = state.config.limits;
+        let l = state.config.service.limits;
         let name = "pregrasp_limit";
         let _ = writeln!(
             s,
@@ -172,7 +208,7 @@ async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
         let _ = writeln!(
             s,
             "# HELP {name} Time from receiving a frame to publishing the estimate that fused it (last {} frames)\n# TYPE {name} summary",
-            super::LatencyRing::CAPACITY
+            crate::service::LatencyRing::CAPACITY
         );
         for q in [0.5, 0.9, 0.99] {
             if let Some(us) = ring.quantile_us(q) {

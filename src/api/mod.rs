@@ -7,71 +7,51 @@
 //! [`app`] builds the whole service from an [`AppState`]; [`serve_on`] runs it until a
 //! shutdown signal.
 
+//! The HTTP layer (axum) over the service: it extracts and validates each request, converts
+//! its DTOs once into domain types, calls [`crate::service`], and converts the answer into a
+//! typed response. Cameras, objects and grippers, frame and odometry ingest, tracks, decisions,
+//! live events, metrics, OpenAPI and the embedded dashboard.
+//!
+//! Layout: one file per resource, each with its own `router()` built with utoipa-axum's
+//! `OpenApiRouter`, so that the routes and the OpenAPI document come from the same
+//! annotations. [`error::ApiError`] is the only place where HTTP status codes appear.
+//! [`app`] builds the whole service from an [`AppState`]; [`serve_on`] runs it until a
+//! shutdown signal.
+
 pub mod cameras;
 pub mod cli;
-pub mod codebooks;
 pub mod decisions;
-pub mod demo;
 pub mod error;
 pub mod events;
 pub mod frames;
 pub mod grippers;
 pub mod health;
-pub mod ingest;
 pub mod objects;
-pub mod replay;
 pub mod scene;
-pub mod store;
 pub mod tracks;
 pub mod types;
-pub mod worker;
 
-pub use worker::start_background;
-
-use crate::geometry;
+use crate::service::{Background, Service, ServiceConfig, ServiceState};
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, Request, State};
 use axum::http::Method;
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use error::ApiError;
-use std::collections::BTreeMap;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, RwLock};
-use std::time::Instant;
-use store::Store;
-use tokio::sync::broadcast;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use utoipa::OpenApi;
 use utoipa_axum::router::OpenApiRouter;
 
-/// Settings of one server instance.
+/// Settings of one server instance: the service's and the HTTP layer's own.
 #[derive(Debug, Clone)]
 pub struct ApiConfig {
-    /// Folder of the embedded store and caches.
-    pub data_dir: PathBuf,
+    pub service: ServiceConfig,
     /// Bearer token required by every request that changes state (`None`: open).
     pub token: Option<String>,
     /// Largest request body, bytes (413 beyond).
     pub max_body_bytes: usize,
-    /// Fusion window: each camera's latest frame no older than this behind the newest frame is
-    /// fused; frames older than the newest minus this are refused (409) as stale.
-    pub window_ns: i64,
-    /// Unprocessed frames kept per camera before the oldest is dropped (the bounded queue).
-    pub max_pending_per_camera: usize,
-    /// A detection that matches no track opens a new one only while its object has fewer than
-    /// this many live (not lost) tracks (the tracker's `max_tracks_per_object`): a detection
-    /// starts a track, it does not duplicate one. Raise it for scenes with several instances
-    /// of one object.
-    pub max_live_tracks_per_object: usize,
-    /// Tracker settings.
-    pub tracker: crate::tracker::TrackerConfig,
-    /// Codebook grids and settings (coarse first, then optionally fine).
-    pub codebooks: codebooks::CodebookPlan,
-    /// Caps on what clients can make the server hold.
-    pub limits: Limits,
-    /// Accept `POST /truth` (ground truth for display: the demo, replays of generated data).
-    pub accept_truth: bool,
     /// Require the token for reads too (every route but `/healthz`).
     pub protect_reads: bool,
     /// Host names (with or without port) a request's `Host` may name; empty: any (no check).
@@ -84,55 +64,12 @@ pub struct ApiConfig {
     pub max_connections: usize,
 }
 
-/// Caps on what clients can make the server hold (each a `serve` option; see `/healthz`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, utoipa::ToSchema)]
-pub struct Limits {
-    /// Registered cameras.
-    pub max_cameras: usize,
-    /// Pixels of one camera image (width x height); frames wait in memory.
-    pub max_camera_pixels: u64,
-    /// Registered objects (each holds a mesh and its codebooks).
-    pub max_objects: usize,
-    /// Registered grippers.
-    pub max_grippers: usize,
-    /// Tracks of one object (started by clients or by detections).
-    pub max_tracks_per_object: usize,
-    /// Tracks in all.
-    pub max_tracks: usize,
-    /// Longest display name, characters (ids: 64).
-    pub max_name_chars: usize,
-    /// Codebook files kept in the cache folder (the least recently written go first).
-    pub max_cached_codebooks: usize,
-}
-
-impl Default for Limits {
-    fn default() -> Self {
-        Self {
-            max_cameras: 16,
-            max_camera_pixels: 3840 * 2160,
-            max_objects: 32,
-            max_grippers: 16,
-            max_tracks_per_object: 4,
-            max_tracks: 32,
-            max_name_chars: 128,
-            max_cached_codebooks: 64,
-        }
-    }
-}
-
 impl ApiConfig {
     pub fn new(data_dir: PathBuf) -> Self {
         Self {
-            data_dir,
+            service: ServiceConfig::new(data_dir),
             token: None,
             max_body_bytes: 32 * 1024 * 1024,
-            window_ns: 300_000_000,
-            max_pending_per_camera: 4,
-            max_live_tracks_per_object: 1,
-            tracker: crate::tracker::TrackerConfig::default(),
-            codebooks: codebooks::CodebookPlan::default(),
-            limits: Limits::default(),
-            accept_truth: false,
             protect_reads: false,
             allowed_hosts: Vec::new(),
             request_timeout: std::time::Duration::from_secs(60),
@@ -142,168 +79,36 @@ impl ApiConfig {
     }
 }
 
-/// Counters exported at `/metrics`.
-#[derive(Default)]
-pub struct Metrics {
-    pub frames_accepted: AtomicU64,
-    pub frames_stale: AtomicU64,
-    pub frames_dropped: AtomicU64,
-    pub odometry_accepted: AtomicU64,
-    pub steps: AtomicU64,
-    pub step_errors: AtomicU64,
-    pub step_latency_us_sum: AtomicU64,
-    pub last_step_latency_us: AtomicU64,
-    pub decisions: AtomicU64,
-    /// Decisions that read the worker's sample bank (no wait for the tracker).
-    pub decisions_from_bank: AtomicU64,
-    /// Decisions answered from an identical query in the same step.
-    pub decisions_shared: AtomicU64,
-    /// Size of the last tracker snapshot written to the store.
-    pub tracker_snapshot_bytes: AtomicU64,
-    pub requests_rejected: AtomicU64,
-    /// Codebook builds abandoned because their object's mesh changed meanwhile.
-    pub codebook_builds_cancelled: AtomicU64,
-    /// Ingest-to-estimate latencies of the most recent frames, microseconds.
-    pub ingest_to_estimate_us: Mutex<LatencyRing>,
-}
-
-/// The last [`LatencyRing::CAPACITY`] latencies (bounded), for quantiles.
-#[derive(Default)]
-pub struct LatencyRing {
-    values_us: std::collections::VecDeque<u64>,
-}
-
-impl LatencyRing {
-    pub const CAPACITY: usize = 20_000;
-    pub fn push(&mut self, us: u64) {
-        self.values_us.push_back(us);
-        if self.values_us.len() > Self::CAPACITY {
-            self.values_us.pop_front();
-        }
-    }
-    pub fn len(&self) -> usize {
-        self.values_us.len()
-    }
-    pub fn is_empty(&self) -> bool {
-        self.values_us.is_empty()
-    }
-    /// The `q` quantile (0..=1), microseconds.
-    pub fn quantile_us(&self, q: f64) -> Option<u64> {
-        let mut v: Vec<u64> = self.values_us.iter().copied().collect();
-        if v.is_empty() {
-            return None;
-        }
-        v.sort_unstable();
-        let i = ((v.len() - 1) as f64 * q.clamp(0.0, 1.0)).round() as usize;
-        Some(v[i])
-    }
-}
-
-/// What the registry knows (in memory; every change is also written to the store).
-#[derive(Default)]
-pub struct Registry {
-    pub cameras: BTreeMap<String, cameras::Camera>,
-    pub objects: BTreeMap<String, objects::ObjectEntry>,
-    pub grippers: BTreeMap<String, serde_json::Value>,
-    /// Bumped on every camera or object change (the tracking worker rebuilds on change).
-    pub version: u64,
-}
-
-/// Everything the handlers share.
-pub struct Shared {
-    pub config: ApiConfig,
-    pub store: Store,
-    pub registry: RwLock<Registry>,
-    pub ingest: Mutex<ingest::IngestBuffer>,
-    /// Signalled when frames arrive (the tracking worker waits on it).
-    pub wake: std::sync::Condvar,
-    pub events: broadcast::Sender<events::ServerEvent>,
-    pub metrics: Metrics,
-    pub tracking: tracks::Tracking,
-    pub grasp_objects: decisions::GraspObjects,
-    pub decision_cache: decisions::DecisionCache,
-    pub codebooks: codebooks::Codebooks,
-    /// Decisions running at once (one per core).
-    pub decision_slots: Arc<tokio::sync::Semaphore>,
-    /// The tracker (built when the first frame arrives; rebuilt when the cameras change).
-    pub engine: Mutex<Option<worker::Engine>>,
-    /// The tracker snapshot read from the store at start, until the tracker takes it.
-    pub restored: Mutex<Option<crate::tracker::TrackerSnapshot>>,
-    /// The support plane (world frame) when one is known (demo, replay of a rig with one).
-    pub support_plane: Mutex<Option<scene::PlaneDto>>,
-    /// Ground truth for display only (`world_from_object` and its stamp per object id).
-    pub truth: Mutex<BTreeMap<String, (i64, geometry::Pose)>>,
-    /// The latest rates (updated once a second).
-    pub stats: Mutex<events::Stats>,
-    pub started: Instant,
-    /// Set when the server begins its graceful shutdown (ends the event streams).
-    pub shutting_down: tokio::sync::watch::Sender<bool>,
-}
-
-/// The state of the service (cheap to clone).
+/// The state of the HTTP layer (cheap to clone): the service and the HTTP settings. It
+/// dereferences to the service's state.
 #[derive(Clone)]
-pub struct AppState(pub Arc<Shared>);
+pub struct AppState {
+    pub service: Service,
+    pub config: Arc<ApiConfig>,
+}
 
 impl std::ops::Deref for AppState {
-    type Target = Shared;
-    fn deref(&self) -> &Shared {
-        &self.0
+    type Target = ServiceState;
+    fn deref(&self) -> &ServiceState {
+        &self.service
     }
 }
 
 impl AppState {
-    /// Opens the store in `config.data_dir` and loads the registry from it.
+    /// Opens the service (store in `config.service.data_dir`).
     pub fn open(config: ApiConfig) -> anyhow::Result<Self> {
-        let store = Store::open(&config.data_dir)?;
-        let mut registry = Registry::default();
-        cameras::load(&store, &mut registry)?;
-        objects::load(&store, &mut registry)?;
-        grippers::load(&store, &mut registry)?;
-        let tracking = tracks::Tracking::default();
-        tracks::load(&store, &tracking)?;
-        let (events, _) = broadcast::channel(256);
         error::BODY_LIMIT_BYTES.store(config.max_body_bytes, Ordering::Relaxed);
-        let ingest = ingest::IngestBuffer::new(config.window_ns, config.max_pending_per_camera);
-        let support_plane = scene::load_support_plane(&store);
-        let restored = tracks::load_tracker_snapshot(&store);
-        Ok(Self(Arc::new(Shared {
-            config,
-            store,
-            registry: RwLock::new(registry),
-            ingest: Mutex::new(ingest),
-            wake: std::sync::Condvar::new(),
-            events,
-            metrics: Metrics::default(),
-            tracking,
-            grasp_objects: decisions::GraspObjects::default(),
-            decision_cache: decisions::DecisionCache::default(),
-            codebooks: codebooks::Codebooks::default(),
-            decision_slots: Arc::new(tokio::sync::Semaphore::new(
-                std::thread::available_parallelism().map_or(2, |n| n.get()),
-            )),
-            engine: Mutex::new(None),
-            restored: Mutex::new(restored),
-            support_plane: Mutex::new(support_plane),
-            truth: Mutex::new(BTreeMap::new()),
-            stats: Mutex::new(events::Stats::default()),
-            started: Instant::now(),
-            shutting_down: tokio::sync::watch::channel(false).0,
-        })))
+        let service = Service::open(config.service.clone())?;
+        Ok(Self {
+            service,
+            config: Arc::new(config),
+        })
     }
+}
 
-    pub fn registry(&self) -> std::sync::RwLockReadGuard<'_, Registry> {
-        self.registry.read().unwrap_or_else(|p| p.into_inner())
-    }
-    pub fn registry_mut(&self) -> std::sync::RwLockWriteGuard<'_, Registry> {
-        self.registry.write().unwrap_or_else(|p| p.into_inner())
-    }
-    pub fn ingest(&self) -> std::sync::MutexGuard<'_, ingest::IngestBuffer> {
-        self.ingest.lock().unwrap_or_else(|p| p.into_inner())
-    }
-    pub fn publish(&self, e: events::ServerEvent) {
-        // No subscriber is not an error.
-        let _ = self.events.send(e);
-    }
+/// Starts the service's background work (the tracking worker, codebook builds, stats).
+pub fn start_background(state: &AppState) -> Background {
+    crate::service::start_background(&state.service)
 }
 
 #[derive(OpenApi)]
@@ -339,7 +144,8 @@ fn common_errors(has_body: bool) -> Vec<(&'static str, &'static str)> {
     v
 }
 
-/// Documents every error answer as what it is, an RFC 9457 problem document
+/// Gives every answer a description, documents every error answer as what it is, an RFC 9457
+/// problem document
 /// (`application/problem+json` with the `Problem` schema), and adds the answers that every
 /// operation can give (a malformed request, a missing token, a foreign Host).
 fn document_errors(doc: &mut utoipa::openapi::OpenApi) {
@@ -363,8 +169,19 @@ fn document_errors(doc: &mut utoipa::openapi::OpenApi) {
                     .or_insert_with(|| RefOr::T(ResponseBuilder::new().description(description).build()));
             }
             for (status, response) in op.responses.responses.iter_mut() {
-                let is_error = status.starts_with('4') || status.starts_with('5');
-                if let (true, RefOr::T(r)) = (is_error, response) {
+                let RefOr::T(r) = response else { continue };
+                // OpenAPI 3.1 requires a description on every response (client generators
+                // refuse a document without): the status's reason phrase when none was given
+                if r.description.is_empty() {
+                    r.description = status
+                        .parse::<u16>()
+                        .ok()
+                        .and_then(|s| axum::http::StatusCode::from_u16(s).ok())
+                        .and_then(|s| s.canonical_reason())
+                        .unwrap_or("Answer")
+                        .to_string();
+                }
+                if status.starts_with('4') || status.starts_with('5') {
                     r.content.clear();
                     r.content
                         .insert("application/problem+json".to_string(), problem().into());

@@ -2,18 +2,17 @@
 //! codebook of each object builds in the background (status `pending`, `building`, `ready`,
 //! `failed` with the reason and a progress fraction).
 
+use super::AppState;
 use super::error::ApiError;
-use super::store::{Store, Table};
 use super::types::check_id;
-use super::{AppState, Registry};
 use crate::mesh::{MAX_MESH_BYTES, Mesh, MeshFormat};
+use crate::service;
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::{Path, Query, State};
 use axum::http::HeaderMap;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
-use std::sync::Arc;
 use utoipa::{IntoParams, ToSchema};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
@@ -42,17 +41,6 @@ pub struct CodebookStatus {
     pub error: Option<String>,
 }
 
-impl CodebookStatus {
-    pub fn pending() -> Self {
-        Self {
-            status: CodebookState::Pending,
-            progress: 0.0,
-            grid_step_deg: None,
-            error: None,
-        }
-    }
-}
-
 /// A registered object.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct ObjectInfo {
@@ -67,20 +55,40 @@ pub struct ObjectInfo {
     /// Whether the codebook uses the mesh's colours (false: depth alone, for a mesh whose
     /// colours do not match the cameras', such as an untextured CAD model or a scan under
     /// other light).
-    #[serde(default = "default_use_color")]
     pub use_color: bool,
     pub codebook: CodebookStatus,
 }
 
-fn default_use_color() -> bool {
-    true
+impl From<service::registry::CodebookState> for CodebookState {
+    fn from(s: service::registry::CodebookState) -> Self {
+        use service::registry::CodebookState as S;
+        match s {
+            S::Pending => Self::Pending,
+            S::Building => Self::Building,
+            S::Ready => Self::Ready,
+            S::Failed => Self::Failed,
+        }
+    }
 }
 
-/// An object in memory: its record and mesh.
-#[derive(Debug, Clone)]
-pub struct ObjectEntry {
-    pub info: ObjectInfo,
-    pub mesh: Arc<Mesh>,
+impl From<&service::registry::ObjectInfo> for ObjectInfo {
+    fn from(o: &service::registry::ObjectInfo) -> Self {
+        Self {
+            id: o.id.clone(),
+            name: o.name.clone(),
+            n_vertices: o.n_vertices,
+            n_triangles: o.n_triangles,
+            diameter_m: o.diameter_m,
+            content_hash: o.content_hash.clone(),
+            use_color: o.use_color,
+            codebook: CodebookStatus {
+                status: o.codebook.status.into(),
+                progress: o.codebook.progress,
+                grid_step_deg: o.codebook.grid_step_deg,
+                error: o.codebook.error.clone(),
+            },
+        }
+    }
 }
 
 /// A mesh reduced for display.
@@ -90,26 +98,6 @@ pub struct DisplayMesh {
     pub triangles: Vec<[u32; 3]>,
 }
 
-pub(super) fn load(store: &Store, reg: &mut Registry) -> anyhow::Result<()> {
-    for (id, mut info) in store.list::<ObjectInfo>(Table::Objects)? {
-        let Some(bytes) = store.get_bytes(Table::Meshes, &id)? else {
-            tracing::warn!("object {id} has no stored mesh; skipped");
-            continue;
-        };
-        let mesh = Mesh::from_bytes(&bytes, MeshFormat::Ply)?;
-        // Codebooks are rebuilt (or loaded from the cache folder) after a restart.
-        info.codebook = CodebookStatus::pending();
-        reg.objects.insert(
-            id,
-            ObjectEntry {
-                info,
-                mesh: Arc::new(mesh),
-            },
-        );
-    }
-    Ok(())
-}
-
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
         .routes(routes!(list_objects))
@@ -117,81 +105,17 @@ pub fn router() -> OpenApiRouter<AppState> {
         .routes(routes!(get_object_mesh))
 }
 
-/// Registers (or replaces) an object: store first, then memory. `use_color`: see
-/// [`ObjectInfo::use_color`].
-pub fn register_mesh(
-    state: &AppState,
-    id: &str,
-    name: &str,
-    mesh: Mesh,
-    use_color: bool,
-) -> Result<ObjectInfo, ApiError> {
-    check_id("object", id)?;
-    super::types::check_name(name, state.config.limits.max_name_chars)?;
-    mesh.validate().map_err(|e| ApiError::Invalid(format!("mesh: {e}")))?;
-    let info = ObjectInfo {
-        id: id.to_string(),
-        name: name.to_string(),
-        n_vertices: mesh.vertices_m.len(),
-        n_triangles: mesh.triangles.len(),
-        diameter_m: mesh.diameter_m(),
-        content_hash: mesh.content_hash(),
-        use_color,
-        codebook: CodebookStatus::pending(),
-    };
-    let mut reg = state.registry_mut();
-    let max = state.config.limits.max_objects;
-    if !reg.objects.contains_key(id) && reg.objects.len() >= max {
-        return Err(ApiError::LimitReached(format!(
-            "this server takes at most {max} objects (--max-objects); delete one first"
-        )));
-    }
-    // the same mesh again (a replay registering its objects) keeps its codebook; a failed
-    // build is tried again
-    let mut info = info;
-    if let Some(old) = reg.objects.get(id)
-        && old.info.content_hash == info.content_hash
-        && old.info.use_color == info.use_color
-        && old.info.codebook.status != CodebookState::Failed
-    {
-        info.codebook = old.info.codebook.clone();
-    }
-    state.store.put_bytes(Table::Meshes, id, &mesh.to_ply_bytes())?;
-    state.store.put(Table::Objects, id, &info)?;
-    reg.objects.insert(
-        id.to_string(),
-        ObjectEntry {
-            info: info.clone(),
-            mesh: Arc::new(mesh),
-        },
-    );
-    reg.version += 1;
-    Ok(info)
-}
-
-/// Updates an object's codebook status (memory only: statuses are recomputed after a restart)
-/// when the object still has the mesh `content_hash` and colour choice `use_color` the
-/// status is about; returns whether it did (a replaced mesh has a new build ahead of it).
-pub fn set_codebook_status(
-    state: &AppState,
-    id: &str,
-    content_hash: &str,
-    use_color: bool,
-    status: CodebookStatus,
-) -> bool {
-    match state.registry_mut().objects.get_mut(id) {
-        Some(o) if o.info.content_hash == content_hash && o.info.use_color == use_color => {
-            o.info.codebook = status;
-            true
-        }
-        _ => false,
-    }
-}
-
 #[utoipa::path(get, path = "/objects", tag = "objects",
     responses((status = 200, body = [ObjectInfo])))]
 async fn list_objects(State(state): State<AppState>) -> Json<Vec<ObjectInfo>> {
-    Json(state.registry().objects.values().map(|o| o.info.clone()).collect())
+    Json(
+        state
+            .registry()
+            .objects
+            .values()
+            .map(|o| ObjectInfo::from(&o.info))
+            .collect(),
+    )
 }
 
 #[utoipa::path(get, path = "/objects/{id}", tag = "objects",
@@ -202,12 +126,13 @@ async fn get_object(State(state): State<AppState>, Path(id): Path<String>) -> Re
         .registry()
         .objects
         .get(&id)
-        .map(|o| Json(o.info.clone()))
+        .map(|o| Json(ObjectInfo::from(&o.info)))
         .ok_or_else(|| ApiError::not_found("object", id))
 }
 
 /// Query of an upload.
 #[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
 pub struct UploadQuery {
     /// Display name (default: the id).
     pub name: Option<String>,
@@ -271,7 +196,7 @@ async fn put_object(
     let bytes = body?;
     check_id("object", &id)?;
     let name = q.name.clone().unwrap_or_else(|| id.clone());
-    super::types::check_name(&name, state.config.limits.max_name_chars)?;
+    super::types::check_name(&name, state.config.service.limits.max_name_chars)?;
     if bytes.len() > MAX_MESH_BYTES {
         return Err(ApiError::TooLarge {
             limit_bytes: MAX_MESH_BYTES,
@@ -282,8 +207,8 @@ async fn put_object(
         .await
         .map_err(ApiError::internal)?
         .map_err(|e| ApiError::Invalid(format!("mesh: {e}")))?;
-    let info = register_mesh(&state, &id, &name, mesh, q.use_color.unwrap_or(true))?;
-    Ok(Json(info))
+    let info = state.register_object(&id, &name, mesh, q.use_color.unwrap_or(true))?;
+    Ok(Json(ObjectInfo::from(&info)))
 }
 
 #[utoipa::path(delete, path = "/objects/{id}", tag = "objects",
@@ -293,17 +218,7 @@ async fn delete_object(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<super::error::Deleted, ApiError> {
-    let mut reg = state.registry_mut();
-    if !reg.objects.contains_key(&id) {
-        return Err(ApiError::not_found("object", id));
-    }
-    state.store.delete(Table::Objects, &id)?;
-    state.store.delete(Table::Meshes, &id)?;
-    reg.objects.remove(&id);
-    reg.version += 1;
-    drop(reg);
-    state.codebooks.forget(&id);
-    state.truth.lock().unwrap_or_else(|p| p.into_inner()).remove(&id);
+    state.delete_object(&id)?;
     Ok(super::error::Deleted)
 }
 

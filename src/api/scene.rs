@@ -1,18 +1,16 @@
 //! `/scene`: what the dashboard draws around the tracks (cameras, robot path, support plane).
 
 use super::AppState;
-use super::cameras::MountDto;
 use super::error::ApiError;
+use super::frames::StampAccepted;
 use super::types::{ApiJson, IntrinsicsDto, PoseDto};
+use crate::grasp::SupportPlane;
 use axum::Json;
 use axum::extract::State;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
-
-/// Most trajectory points served.
-pub const MAX_TRAJECTORY_POINTS: usize = 500;
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
@@ -47,56 +45,29 @@ pub struct Scene {
     pub robot_trajectory_m: Vec<[f64; 3]>,
 }
 
+impl From<PlaneDto> for SupportPlane {
+    fn from(p: PlaneDto) -> Self {
+        Self {
+            normal: p.normal,
+            point_m: p.point_m,
+        }
+    }
+}
+
+impl From<SupportPlane> for PlaneDto {
+    fn from(p: SupportPlane) -> Self {
+        Self {
+            normal: p.normal,
+            point_m: p.point_m,
+        }
+    }
+}
+
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
         .routes(routes!(get_scene))
         .routes(routes!(put_support_plane))
         .routes(routes!(post_truth))
-}
-
-/// The support plane saved by the last run (an unreadable one is logged and ignored).
-pub(super) fn load_support_plane(store: &super::store::Store) -> Option<PlaneDto> {
-    let bytes = store
-        .get_bytes(super::store::Table::Scene, super::store::SUPPORT_PLANE_KEY)
-        .map_err(|e| tracing::warn!("reading the support plane: {e}"))
-        .ok()??;
-    serde_json::from_slice::<PlaneDto>(&bytes)
-        .map_err(|e| tracing::warn!("support plane unreadable, ignored: {e}"))
-        .ok()
-        .and_then(|p| validate_plane(&p).ok())
-}
-
-/// Sets the support plane, in memory and in the store.
-pub fn set_support_plane(state: &AppState, plane: Option<PlaneDto>) -> Result<(), ApiError> {
-    let (table, key) = (super::store::Table::Scene, super::store::SUPPORT_PLANE_KEY);
-    match &plane {
-        Some(p) => state.store.put(table, key, p)?,
-        None => {
-            state.store.delete(table, key)?;
-        }
-    }
-    *state.support_plane.lock().unwrap_or_else(|p| p.into_inner()) = plane;
-    Ok(())
-}
-
-/// Checks a plane (finite, non-zero normal, a point within [`super::types::MAX_POSITION_M`])
-/// and normalises its normal.
-pub fn validate_plane(p: &PlaneDto) -> Result<PlaneDto, ApiError> {
-    let n = nalgebra::Vector3::from(p.normal);
-    let ok = p.normal.iter().chain(&p.point_m).all(|v| v.is_finite())
-        && n.norm() > 1e-9
-        && nalgebra::Vector3::from(p.point_m).norm() <= super::types::MAX_POSITION_M;
-    if !ok {
-        return Err(ApiError::Invalid(format!(
-            "support plane needs finite numbers, a non-zero normal and a point within {} m",
-            super::types::MAX_POSITION_M
-        )));
-    }
-    let n = n.normalize();
-    Ok(PlaneDto {
-        normal: [n.x, n.y, n.z],
-        point_m: p.point_m,
-    })
 }
 
 #[utoipa::path(put, path = "/scene/support_plane", tag = "scene",
@@ -106,9 +77,8 @@ async fn put_support_plane(
     State(state): State<AppState>,
     ApiJson(plane): ApiJson<Option<PlaneDto>>,
 ) -> Result<Json<Option<PlaneDto>>, ApiError> {
-    let plane = plane.as_ref().map(validate_plane).transpose()?;
-    set_support_plane(&state, plane)?;
-    Ok(Json(plane))
+    let plane = state.set_support_plane(plane.map(SupportPlane::from))?;
+    Ok(Json(plane.map(PlaneDto::from)))
 }
 
 /// One object's true pose.
@@ -130,66 +100,44 @@ pub struct TruthIn {
 
 #[utoipa::path(post, path = "/truth", tag = "scene",
     request_body = TruthIn,
-    responses((status = 202, description = "Stored for display"),
+    responses((status = 202, description = "Stored for display", body = StampAccepted),
         (status = 403, description = "The server was started without --accept-truth (or --demo)", body = super::error::Problem),
         (status = 422, body = super::error::Problem)))]
 async fn post_truth(
     State(state): State<AppState>,
     ApiJson(t): ApiJson<TruthIn>,
-) -> Result<super::error::Accepted<serde_json::Value>, ApiError> {
-    if !state.config.accept_truth {
-        return Err(ApiError::Disabled(
-            "this server does not accept ground truth (start it with --accept-truth or --demo)".into(),
-        ));
-    }
-    super::frames::validate_stamp("stamp_ns", t.stamp_ns)?;
-    let mut poses = Vec::with_capacity(t.objects.len());
-    {
-        // one entry per registered object: the map stays as small as the registry
-        let reg = state.registry();
-        for o in &t.objects {
-            if !reg.objects.contains_key(&o.object) {
-                return Err(ApiError::Invalid(format!(
-                    "ground truth names unknown object '{}'",
-                    super::types::shorten(&o.object)
-                )));
-            }
-            poses.push((o.object.clone(), o.world_from_object.to_pose("world_from_object")?));
-        }
-    }
-    let mut truth = state.truth.lock().unwrap_or_else(|p| p.into_inner());
-    for (object, pose) in poses {
-        truth.insert(object, (t.stamp_ns, pose));
-    }
-    Ok(super::error::Accepted(serde_json::json!({"stamp_ns": t.stamp_ns})))
+) -> Result<super::error::Accepted<StampAccepted>, ApiError> {
+    let objects = t
+        .objects
+        .iter()
+        .map(|o| Ok((o.object.clone(), o.world_from_object.to_pose("world_from_object")?)))
+        .collect::<Result<Vec<_>, ApiError>>()?;
+    state.set_truth(t.stamp_ns, objects)?;
+    Ok(super::error::Accepted(StampAccepted { stamp_ns: t.stamp_ns }))
 }
 
 #[utoipa::path(get, path = "/scene", tag = "scene", responses((status = 200, body = Scene)))]
 async fn get_scene(State(state): State<AppState>) -> Json<Scene> {
-    let world_from_reference = state.tracking.board().world_from_reference;
-    let cams: Vec<_> = state.registry().cameras.values().cloned().collect();
-    let support_plane = *state.support_plane.lock().unwrap_or_else(|p| p.into_inner());
-    let ingest = state.ingest();
-    let cameras = cams
+    let scene = state.scene();
+    let cameras = scene
+        .cameras
         .into_iter()
-        .map(|c| {
-            let (mount, world_from_camera) = match c.mount {
-                MountDto::Stationary { world_from_camera } => (MountKind::Stationary, Some(world_from_camera)),
-                MountDto::Robot { .. } => (MountKind::Robot, world_from_reference),
-            };
-            SceneCamera {
-                latest_stamp_ns: ingest.latest(&c.id).map(|f| f.stamp_ns),
-                id: c.id,
-                mount,
-                intrinsics: c.intrinsics,
-                world_from_camera,
-            }
+        .map(|c| SceneCamera {
+            id: c.camera.id.clone(),
+            mount: if c.camera.is_robot() {
+                MountKind::Robot
+            } else {
+                MountKind::Stationary
+            },
+            intrinsics: IntrinsicsDto::from_intrinsics(&c.camera.intrinsics),
+            world_from_camera: c.world_from_camera.as_ref().map(PoseDto::from_pose),
+            latest_stamp_ns: c.latest_stamp_ns,
         })
         .collect();
     Json(Scene {
         world_frame: "world".into(),
-        support_plane,
+        support_plane: scene.support_plane.map(PlaneDto::from),
         cameras,
-        robot_trajectory_m: ingest.trajectory_m(MAX_TRAJECTORY_POINTS),
+        robot_trajectory_m: scene.robot_trajectory_m,
     })
 }

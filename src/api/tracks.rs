@@ -1,26 +1,18 @@
-//! `/tracks`: the tracked objects (current estimate, samples, history, stop) and
-//! `/scene` (cameras, robot trajectory, support plane).
+//! `/tracks`: the tracked objects (current estimate, samples, history, start, stop).
 
 use super::AppState;
+use super::decisions::DecisionView;
 use super::error::ApiError;
 use super::types::PoseDto;
+use crate::service::decisions::MAX_DECISION_SAMPLES;
+use crate::service::tracks::{self as service_tracks, PriorPose, StartTrack, TrackState};
+use crate::tracker::TrackStatus;
 use axum::Json;
 use axum::extract::{Path, State};
 use serde::{Deserialize, Serialize};
-use std::collections::{BTreeMap, VecDeque};
-use std::sync::RwLock;
 use utoipa::ToSchema;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
-
-/// History points kept per track.
-pub const MAX_HISTORY: usize = 600;
-
-/// Range of a prior's position standard deviation, metres.
-pub const MIN_PRIOR_STD_M: f64 = 1e-4;
-pub const MAX_PRIOR_STD_M: f64 = 2.0;
-/// Smallest standard deviation of a prior's rotation, degrees.
-pub const MIN_PRIOR_STD_DEG: f64 = 0.01;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
 #[serde(rename_all = "snake_case")]
@@ -84,8 +76,8 @@ pub struct TrackView {
     pub particles: Vec<ParticleDto>,
     /// Up to 10 poses drawn from the distribution, world frame.
     pub samples_world: Vec<PoseDto>,
-    #[schema(value_type = Option<Object>)]
-    pub decision: Option<serde_json::Value>,
+    /// The latest decision asked about this track.
+    pub decision: Option<DecisionView>,
     pub truth: Option<TruthDto>,
     /// Milliseconds from receiving the newest fused frame to this estimate.
     pub ingest_to_estimate_ms: Option<f64>,
@@ -102,127 +94,85 @@ pub struct HistoryPoint {
     pub truth: Option<TruthDto>,
 }
 
-/// The published state of the tracking worker (what the read endpoints serve).
-#[derive(Default)]
-pub struct TrackBoard {
-    pub views: BTreeMap<u64, TrackView>,
-    pub history: BTreeMap<u64, VecDeque<HistoryPoint>>,
-    /// Tracks stopped by a client (the worker drops them).
-    pub stopped: Vec<u64>,
-    /// Latest `world_from_reference` (robot camera) estimate.
-    pub world_from_reference: Option<PoseDto>,
-}
-
-/// Shared between handlers and the worker.
-#[derive(Default)]
-pub struct Tracking {
-    pub board: RwLock<TrackBoard>,
-}
-
-impl Tracking {
-    pub fn board(&self) -> std::sync::RwLockReadGuard<'_, TrackBoard> {
-        self.board.read().unwrap_or_else(|p| p.into_inner())
-    }
-    pub fn board_mut(&self) -> std::sync::RwLockWriteGuard<'_, TrackBoard> {
-        self.board.write().unwrap_or_else(|p| p.into_inner())
-    }
-    pub fn track_count(&self) -> usize {
-        self.board().views.len()
-    }
-    /// Attaches the latest decision to a track's view.
-    pub fn set_decision(&self, track_id: u64, decision: serde_json::Value) {
-        if let Some(v) = self.board_mut().views.get_mut(&track_id) {
-            v.decision = Some(decision);
-        }
-    }
-    /// Publishes a new view of a track (and appends to its history).
-    pub fn publish(&self, view: TrackView) {
-        let mut b = self.board_mut();
-        let h = b.history.entry(view.id).or_default();
-        h.push_back(HistoryPoint {
-            stamp_ns: view.stamp_ns,
-            world_from_object: view.world_from_object,
-            translation_std_m: view.translation_std_m,
-            rotation_entropy: view.rotation_entropy,
-            status: view.status,
-            truth: view.truth.clone(),
-        });
-        while h.len() > MAX_HISTORY {
-            h.pop_front();
-        }
-        b.views.insert(view.id, view);
-    }
-}
-
-/// Loads the saved track snapshots (their last published state; shown until the tracker
-/// publishes a newer one).
-pub(super) fn load(store: &super::store::Store, tracking: &Tracking) -> anyhow::Result<()> {
-    let mut b = tracking.board_mut();
-    for (_, view) in store.list::<TrackView>(super::store::Table::Tracks)? {
-        b.views.insert(view.id, view);
-    }
-    Ok(())
-}
-
-/// The tracker snapshot saved by the last run, if any (an unreadable one is logged and
-/// ignored: the tracks then restart from their next detections).
-pub(super) fn load_tracker_snapshot(store: &super::store::Store) -> Option<crate::tracker::TrackerSnapshot> {
-    let bytes = match store.get_bytes(super::store::Table::TrackerState, super::store::TRACKER_KEY) {
-        Ok(b) => b?,
-        Err(e) => {
-            tracing::warn!("reading the tracker snapshot: {e}");
-            return None;
-        }
-    };
-    match serde_json::from_slice::<crate::tracker::TrackerSnapshot>(&bytes) {
-        Ok(s) if s.version == crate::tracker::filter::SNAPSHOT_VERSION => Some(s),
-        Ok(s) => {
-            tracing::warn!("tracker snapshot of version {} ignored", s.version);
-            None
-        }
-        Err(e) => {
-            tracing::warn!("tracker snapshot unreadable, ignored: {e}");
-            None
+impl From<TrackStatus> for TrackStatusDto {
+    fn from(s: TrackStatus) -> Self {
+        match s {
+            TrackStatus::Initialising => Self::Initialising,
+            TrackStatus::Tracking => Self::Tracking,
+            TrackStatus::Lost => Self::Lost,
         }
     }
 }
 
-/// Forgets every track (the tracker starts over): the published views, their history, their
-/// stored records (so that a restart does not bring them back) and their decision banks.
-pub fn forget_all(state: &AppState) {
-    let ids: Vec<u64> = {
-        let mut b = state.tracking.board_mut();
-        let ids = b.views.keys().copied().collect();
-        b.views.clear();
-        b.history.clear();
-        b.world_from_reference = None;
-        ids
-    };
-    for id in ids {
-        if let Err(e) = state.store.delete(super::store::Table::Tracks, &id.to_string()) {
-            tracing::warn!("forgetting track {id}: {e}");
+impl From<&service_tracks::TruthError> for TruthDto {
+    fn from(t: &service_tracks::TruthError) -> Self {
+        Self {
+            translation_error_m: t.translation_error_m,
+            orientation_error_deg: t.orientation_error_deg,
         }
     }
-    state.decision_cache.forget(None);
 }
 
-/// Saves every track's current view in one transaction (called periodically by the worker).
-pub fn save_snapshots(state: &AppState) -> Result<(), ApiError> {
-    let records: Vec<(String, Vec<u8>)> = state
-        .tracking
-        .board()
-        .views
-        .values()
-        .map(|v| {
-            // Compact: no particles or samples.
-            let mut v = v.clone();
-            v.particles.clear();
-            v.samples_world.clear();
-            (v.id.to_string(), serde_json::to_vec(&v).unwrap_or_default())
-        })
-        .collect();
-    state.store.put_many(super::store::Table::Tracks, &records)?;
-    Ok(())
+impl From<&TrackState> for TrackView {
+    fn from(t: &TrackState) -> Self {
+        Self {
+            id: t.id,
+            object_id: t.object_id.clone(),
+            object_name: t.object_name.clone(),
+            status: t.status.into(),
+            stamp_ns: t.stamp_ns,
+            reference_from_object: PoseDto::from_pose(&t.reference_from_object),
+            world_from_object: PoseDto::from_pose(&t.world_from_object),
+            translation_std_m: t.translation_std_m,
+            rotation_entropy: t.rotation_entropy,
+            top_mode_mass: t.top_mode_mass,
+            covariance_6x6: t.covariance_6x6.clone(),
+            components: t
+                .components
+                .iter()
+                .map(|c| ComponentDto {
+                    camera: c.camera.clone(),
+                    weight: c.weight,
+                    mean_m: c.mean_m,
+                    covariance_m2: c.covariance_m2,
+                })
+                .collect(),
+            rotation_modes: t
+                .rotation_modes
+                .iter()
+                .map(|m| RotationModeDto {
+                    rotation_xyzw: m.rotation_xyzw,
+                    mass: m.mass,
+                })
+                .collect(),
+            particles: t
+                .particles
+                .iter()
+                .map(|p| ParticleDto {
+                    position_world_m: p.position_world_m,
+                    camera: p.camera.clone(),
+                    weight: p.weight,
+                })
+                .collect(),
+            samples_world: t.samples_world.iter().map(PoseDto::from_pose).collect(),
+            decision: t.decision.as_deref().map(DecisionView::from),
+            truth: t.truth.as_ref().map(TruthDto::from),
+            ingest_to_estimate_ms: t.ingest_to_estimate_ms,
+        }
+    }
+}
+
+impl From<&service_tracks::HistoryPoint> for HistoryPoint {
+    fn from(h: &service_tracks::HistoryPoint) -> Self {
+        Self {
+            stamp_ns: h.stamp_ns,
+            world_from_object: PoseDto::from_pose(&h.world_from_object),
+            translation_std_m: h.translation_std_m,
+            rotation_entropy: h.rotation_entropy,
+            status: h.status.into(),
+            truth: h.truth.as_ref().map(TruthDto::from),
+        }
+    }
 }
 
 /// Start tracking an object from what the caller already believes (a map, an earlier visit):
@@ -253,40 +203,30 @@ async fn start_track(
     if !state.registry().objects.contains_key(&req.object_id) {
         return Err(ApiError::not_found("object", req.object_id));
     }
-    let world = req
-        .world_from_object
-        .map(|p| p.to_pose("world_from_object"))
-        .transpose()?;
-    let reference = req
-        .reference_from_object
-        .map(|p| p.to_pose("reference_from_object"))
-        .transpose()?;
-    if world.is_some() == reference.is_some() {
-        return Err(ApiError::Invalid(
-            "give exactly one of world_from_object and reference_from_object".into(),
-        ));
-    }
-    let std_m = req.translation_std_m.unwrap_or(0.05);
-    if !(MIN_PRIOR_STD_M..=MAX_PRIOR_STD_M).contains(&std_m) {
-        return Err(ApiError::Invalid(format!(
-            "translation_std_m must be in [{MIN_PRIOR_STD_M}, {MAX_PRIOR_STD_M}], got {std_m}"
-        )));
-    }
-    let rot = match req.rotation_std_deg {
-        Some(d) if (MIN_PRIOR_STD_DEG..=180.0).contains(&d) => Some(d.to_radians()),
-        Some(d) => {
-            return Err(ApiError::Invalid(format!(
-                "rotation_std_deg must be in [{MIN_PRIOR_STD_DEG}, 180], got {d}"
-            )));
+    let pose = match (&req.world_from_object, &req.reference_from_object) {
+        (Some(w), None) => PriorPose::World {
+            world_from_object: w.to_pose("world_from_object")?,
+        },
+        (None, Some(r)) => PriorPose::Reference {
+            reference_from_object: r.to_pose("reference_from_object")?,
+        },
+        _ => {
+            return Err(ApiError::Invalid(
+                "give exactly one of world_from_object and reference_from_object".into(),
+            ));
         }
-        None => None,
     };
-    let object = req.object_id.clone();
-    let view =
-        tokio::task::spawn_blocking(move || super::worker::start_track(&state, &object, world, reference, std_m, rot))
-            .await
-            .map_err(ApiError::internal)??;
-    Ok(super::error::Created(view))
+    let start = StartTrack {
+        object_id: req.object_id,
+        pose,
+        translation_std_m: req.translation_std_m.unwrap_or(service_tracks::DEFAULT_PRIOR_STD_M),
+        rotation_std_deg: req.rotation_std_deg,
+    };
+    let service = state.service.clone();
+    let view = tokio::task::spawn_blocking(move || service.start_track(&start))
+        .await
+        .map_err(ApiError::internal)??;
+    Ok(super::error::Created(TrackView::from(&view)))
 }
 
 pub fn router() -> OpenApiRouter<AppState> {
@@ -299,6 +239,7 @@ pub fn router() -> OpenApiRouter<AppState> {
 
 /// Query of `/tracks/{id}/samples`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 pub struct SamplesQuery {
     /// How many poses (1..=5,000; default 100).
     pub n: Option<usize>,
@@ -327,13 +268,13 @@ async fn track_samples(
     let axum::extract::Query(q) = q?;
     let id = parse_id(&id)?;
     let n = q.n.unwrap_or(100);
-    if n == 0 || n > super::decisions::MAX_DECISION_SAMPLES {
+    if n == 0 || n > MAX_DECISION_SAMPLES {
         return Err(ApiError::Invalid(format!(
-            "n must be in 1..={}, got {n}",
-            super::decisions::MAX_DECISION_SAMPLES
+            "n must be in 1..={MAX_DECISION_SAMPLES}, got {n}"
         )));
     }
-    let drawn = tokio::task::spawn_blocking(move || super::worker::draw_samples(&state, id, n))
+    let service = state.service.clone();
+    let drawn = tokio::task::spawn_blocking(move || service.draw_samples(id, n))
         .await
         .map_err(ApiError::internal)??;
     Ok(Json(SamplesView {
@@ -351,7 +292,7 @@ async fn track_samples(
 
 #[utoipa::path(get, path = "/tracks", tag = "tracks", responses((status = 200, body = [TrackView])))]
 async fn list_tracks(State(state): State<AppState>) -> Json<Vec<TrackView>> {
-    Json(state.tracking.board().views.values().cloned().collect())
+    Json(state.tracks().iter().map(TrackView::from).collect())
 }
 
 fn parse_id(id: &str) -> Result<u64, ApiError> {
@@ -364,14 +305,7 @@ fn parse_id(id: &str) -> Result<u64, ApiError> {
     responses((status = 200, body = TrackView), (status = 404, body = super::error::Problem)))]
 async fn get_track(State(state): State<AppState>, Path(id): Path<String>) -> Result<Json<TrackView>, ApiError> {
     let id = parse_id(&id)?;
-    state
-        .tracking
-        .board()
-        .views
-        .get(&id)
-        .cloned()
-        .map(Json)
-        .ok_or_else(|| ApiError::not_found("track", id.to_string()))
+    Ok(Json(TrackView::from(&state.track(id)?)))
 }
 
 #[utoipa::path(get, path = "/tracks/{id}/history", tag = "tracks",
@@ -382,13 +316,7 @@ async fn track_history(
     Path(id): Path<String>,
 ) -> Result<Json<Vec<HistoryPoint>>, ApiError> {
     let id = parse_id(&id)?;
-    state
-        .tracking
-        .board()
-        .history
-        .get(&id)
-        .map(|h| Json(h.iter().cloned().collect()))
-        .ok_or_else(|| ApiError::not_found("track", id.to_string()))
+    Ok(Json(state.track_history(id)?.iter().map(HistoryPoint::from).collect()))
 }
 
 #[utoipa::path(delete, path = "/tracks/{id}", tag = "tracks",
@@ -396,14 +324,6 @@ async fn track_history(
     responses((status = 204), (status = 404, body = super::error::Problem)))]
 async fn stop_track(State(state): State<AppState>, Path(id): Path<String>) -> Result<super::error::Deleted, ApiError> {
     let id = parse_id(&id)?;
-    let mut b = state.tracking.board_mut();
-    if b.views.remove(&id).is_none() {
-        return Err(ApiError::not_found("track", id.to_string()));
-    }
-    b.history.remove(&id);
-    b.stopped.push(id);
-    drop(b);
-    state.decision_cache.forget(Some(id));
-    state.store.delete(super::store::Table::Tracks, &id.to_string())?;
+    state.stop_track(id)?;
     Ok(super::error::Deleted)
 }

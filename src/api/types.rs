@@ -1,5 +1,5 @@
-//! Wire types shared by several resources (the HTTP layer's DTOs of domain types) and the JSON
-//! extractor whose rejections are problem documents.
+//! Wire types shared by several resources (the HTTP layer's DTOs of domain types, each
+//! converted once at the edge) and the JSON extractor whose rejections are problem documents.
 
 use super::error::ApiError;
 use crate::camera::Intrinsics;
@@ -17,8 +17,7 @@ pub struct PoseDto {
     pub translation_m: [f64; 3],
 }
 
-/// Farthest position accepted anywhere (poses, planes), metres from the frame's origin.
-pub const MAX_POSITION_M: f64 = 1_000.0;
+pub use crate::service::checks::MAX_POSITION_M;
 
 impl PoseDto {
     /// Validates (finite numbers, unit quaternion, a position within [`MAX_POSITION_M`]) into a
@@ -83,42 +82,17 @@ pub struct DetectionDto {
     pub score: f64,
 }
 
-/// At most 64 characters of `s` for an error message (a client's string is not echoed whole).
-pub fn shorten(s: &str) -> String {
-    let mut out: String = s.chars().take(64).filter(|c| !c.is_control()).collect();
-    if s.chars().count() > 64 {
-        out.push_str("...");
+impl From<DetectionDto> for crate::sensor::Detection {
+    fn from(d: DetectionDto) -> Self {
+        Self {
+            object: d.object,
+            bbox_xywh_px: d.bbox_xywh_px,
+            score: d.score,
+        }
     }
-    out
 }
 
-/// Checks a display name: at most `max_chars` characters, no control characters.
-pub fn check_name(name: &str, max_chars: usize) -> Result<(), ApiError> {
-    if name.chars().count() > max_chars || name.chars().any(char::is_control) {
-        return Err(ApiError::Invalid(format!(
-            "name '{}' must be at most {max_chars} characters without control characters",
-            shorten(name)
-        )));
-    }
-    Ok(())
-}
-
-/// Checks that an id is usable in a URL path and as a store key.
-pub fn check_id(kind: &str, id: &str) -> Result<(), ApiError> {
-    let ok = !id.is_empty()
-        && id.len() <= 64
-        && id
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-' || c == '.');
-    if ok {
-        Ok(())
-    } else {
-        Err(ApiError::Invalid(format!(
-            "{kind} id '{}' must be 1-64 characters of A-Z, a-z, 0-9, '_', '-', '.'",
-            shorten(id)
-        )))
-    }
-}
+pub use crate::service::checks::{check_id, check_name, shorten};
 
 /// `Json<T>` whose rejections are problem documents.
 pub struct ApiJson<T>(pub T);

@@ -18,6 +18,7 @@
 pub mod cli;
 pub mod gt_info;
 pub mod plan;
+pub mod sim;
 
 use crate::camera::{CameraError, ColorImage, DepthImage, Intrinsics};
 use crate::dataset::{
@@ -26,7 +27,7 @@ use crate::dataset::{
 };
 use crate::geometry::Pose;
 use crate::mesh::{self, Mesh, MeshError};
-use crate::render::{ClipRange, MeshHandle, RenderError, Renderer, SceneObject};
+use crate::render::{ClipRange, RenderError, Renderer};
 use crate::sensor::{CameraFrame, CameraMount, RobotOdometry};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::seq::SliceRandom;
@@ -36,6 +37,7 @@ use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// Name of the robot camera (the reference camera) in generated rigs.
 pub const ROBOT_CAMERA: &str = "robot";
@@ -54,8 +56,6 @@ pub const MIN_IMAGE_SIDE_PX: u32 = 16;
 pub const MAX_RANDOM_OBJECTS: usize = 5;
 /// Random subsets drawn before a layout error is reported.
 const LAYOUT_ATTEMPTS: usize = 20;
-/// Instance id of the first object in the rendered instance mask (the table and floor use 0).
-const FIRST_INSTANCE: u16 = 1;
 
 #[derive(Debug, thiserror::Error)]
 pub enum GenerateError {
@@ -446,15 +446,14 @@ struct Prepared<'a> {
     /// The placed objects' models, in `scene_gt` order.
     models: Vec<&'a ModelSpec>,
     world_from_object: Vec<Pose>,
-    scene: Vec<SceneObject>,
+    /// The scene (objects, table, occluder, floor) and its light.
+    scene: sim::SceneSim,
     /// Per camera: intrinsics, and per frame id the stamp and `world_from_camera`.
     cameras: BTreeMap<String, (Intrinsics, FramePoses)>,
     odometry: BTreeMap<u32, OdometrySample>,
     world_from_base_true: BTreeMap<u32, Pose>,
     look_away_frames: Vec<u32>,
     occluder: Option<(Pose, [f64; 3])>,
-    /// Direction towards the scene's light (world frame); `None`: a headlight per camera.
-    towards_light_in_world: Option<Vector3<f64>>,
 }
 
 fn table_mesh() -> Mesh {
@@ -629,48 +628,43 @@ fn prepare<'a>(renderer: &Renderer, config: &'a GenerateConfig, seed: u64) -> Re
 
     // the scene to render: objects first (instance ids from 1), then table, occluder and floor
     // (id 0: not tracked)
-    let mut scene = Vec::new();
-    for (i, (m, wfo)) in models.iter().zip(&world_from_object).enumerate() {
-        scene.push(SceneObject {
-            mesh: renderer.upload_mesh(&m.mesh)?,
+    let objects = models
+        .iter()
+        .zip(&world_from_object)
+        .map(|(m, wfo)| sim::Placed {
+            mesh: Arc::new(m.mesh.clone()),
             world_from_object: *wfo,
-            instance_id: FIRST_INSTANCE + i as u16,
-        });
-    }
-    scene.push(SceneObject {
-        mesh: renderer.upload_mesh(&table_mesh())?,
+        })
+        .collect();
+    let mut props = vec![sim::Placed {
+        mesh: Arc::new(table_mesh()),
         world_from_object: translation(0.0, 0.0, -plan::TABLE_THICKNESS_M / 2.0),
-        instance_id: 0,
-    });
+    }];
     if let Some((pose, size)) = &occluder {
-        scene.push(SceneObject {
-            mesh: renderer.upload_mesh(&mesh::builtin_box(*size, [[60, 110, 170], [200, 200, 200]]))?,
+        props.push(sim::Placed {
+            mesh: Arc::new(mesh::builtin_box(*size, [[60, 110, 170], [200, 200, 200]])),
             world_from_object: *pose,
-            instance_id: 0,
         });
     }
-    let tiles: [MeshHandle; 2] = [
-        renderer.upload_mesh(&floor_tile(false))?,
-        renderer.upload_mesh(&floor_tile(true))?,
-    ];
+    let tiles = [Arc::new(floor_tile(false)), Arc::new(floor_tile(true))];
     for i in 0..FLOOR_TILES {
         for j in 0..FLOOR_TILES {
             let offset = (FLOOR_TILES as f64 - 1.0) / 2.0;
-            scene.push(SceneObject {
+            props.push(sim::Placed {
                 mesh: tiles[((i + j) % 2) as usize].clone(),
                 world_from_object: translation(
                     (i as f64 - offset) * FLOOR_TILE_M,
                     (j as f64 - offset) * FLOOR_TILE_M,
                     -plan::TABLE_HEIGHT_M - 0.01,
                 ),
-                instance_id: 0,
             });
         }
     }
+    let mut scene = sim::SceneSim::new(objects, props, CLIP, [0, 0, 0]);
 
     // the light: its own stream, so that the scene is the same with a headlight
     let mut rng = ChaCha8Rng::seed_from_u64(stream_seed(seed, &[b"light"]));
-    let towards_light_in_world = (!config.headlight).then(|| {
+    scene.towards_light_in_world = (!config.headlight).then(|| {
         let elevation = rng.random_range(30f64..80.0).to_radians();
         let azimuth = rng.random_range(0.0..std::f64::consts::TAU);
         Vector3::new(
@@ -679,6 +673,7 @@ fn prepare<'a>(renderer: &Renderer, config: &'a GenerateConfig, seed: u64) -> Re
             elevation.sin(),
         )
     });
+    scene.upload(renderer)?;
 
     let odometry = robot.odometry.iter().enumerate().map(|(k, o)| (k as u32, *o)).collect();
     let world_from_base_true = robot
@@ -699,7 +694,6 @@ fn prepare<'a>(renderer: &Renderer, config: &'a GenerateConfig, seed: u64) -> Re
         world_from_base_true,
         look_away_frames: robot.look_away_frames,
         occluder,
-        towards_light_in_world,
     })
 }
 
@@ -718,29 +712,20 @@ struct CleanFrame {
 
 impl Prepared<'_> {
     fn clean(&self, renderer: &Renderer, intrinsics: &Intrinsics, world_from_camera: &Pose) -> Result<CleanFrame> {
+        // the scene was uploaded in `prepare`
+        let r = self.scene.render_gpu(renderer, intrinsics, world_from_camera)?;
         let camera_from_world = world_from_camera.inverse();
-        let r = renderer.render_scene_lit(
-            intrinsics,
-            &camera_from_world,
-            &self.scene,
-            CLIP,
-            [0, 0, 0],
-            self.towards_light_in_world,
-        )?;
-        let mut masks = Vec::with_capacity(self.models.len());
+        let masks = self.scene.visible_masks(&r);
         let mut gt = Vec::with_capacity(self.models.len());
         let mut gt_info = Vec::with_capacity(self.models.len());
-        for (i, (m, wfo)) in self.models.iter().zip(&self.world_from_object).enumerate() {
-            let id = FIRST_INSTANCE + i as u16;
-            let visible: Vec<bool> = r.instance.iter().map(|v| *v == id).collect();
+        for ((m, wfo), visible) in self.models.iter().zip(&self.world_from_object).zip(&masks) {
             let camera_from_object = camera_from_world * wfo;
             let alone = crate::render::raster::silhouette(&m.mesh, &camera_from_object, intrinsics);
-            gt_info.push(gt_info::gt_info(&alone, &visible, intrinsics.width));
+            gt_info.push(gt_info::gt_info(&alone, visible, intrinsics.width));
             gt.push(GtObject {
                 obj_id: m.obj_id,
                 camera_from_object,
             });
-            masks.push(visible);
         }
         Ok(CleanFrame {
             depth: r.depth,

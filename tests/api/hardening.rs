@@ -259,8 +259,8 @@ async fn image_sizes_are_checked_from_the_header_before_decoding() {
 #[tokio::test]
 async fn queues_are_freed_and_caps_hold() {
     let app = spawn_app_configured(|c| {
-        c.limits.max_cameras = 2;
-        c.limits.max_name_chars = 16;
+        c.service.limits.max_cameras = 2;
+        c.service.limits.max_name_chars = 16;
     })
     .await;
     assert_eq!(app.put_json("/cameras/ext1", &camera_spec(false)).await.status(), 200);
@@ -332,7 +332,7 @@ async fn queues_are_freed_and_caps_hold() {
 
 #[tokio::test]
 async fn ground_truth_needs_the_option() {
-    let app = spawn_app_configured(|c| c.accept_truth = false).await;
+    let app = spawn_app_configured(|c| c.service.accept_truth = false).await;
     let ply = pregrasp::mesh::builtin("box").expect("box").to_ply_bytes();
     assert_eq!(
         app.put_bytes("/objects/box", "application/octet-stream", ply)
@@ -558,7 +558,7 @@ async fn a_demo_loop_start_leaves_no_frame_or_odometry_behind() {
         }
     }
     let epoch = app.state.ingest().epoch();
-    pregrasp::api::demo::reset_tracking(&app.state);
+    pregrasp::service::demo::reset_tracking(&app.state);
     {
         let ingest = app.state.ingest();
         assert_eq!(ingest.pending(), 0, "no frame of the last loop waits");

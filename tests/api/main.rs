@@ -5,6 +5,7 @@ mod bad_requests;
 mod hardening;
 mod ingest;
 mod openapi;
+mod python_client;
 mod registry;
 mod replay;
 mod tracking;
@@ -138,8 +139,8 @@ pub async fn spawn_app_configured(configure: impl FnOnce(&mut ApiConfig)) -> Tes
 pub fn test_config(data_dir: PathBuf) -> ApiConfig {
     let mut config = ApiConfig::new(data_dir);
     config.max_body_bytes = 4 * 1024 * 1024;
-    config.window_ns = 300_000_000;
-    config.accept_truth = true;
+    config.service.window_ns = 300_000_000;
+    config.service.accept_truth = true;
     config
 }
 
@@ -161,7 +162,7 @@ async fn spawn_config(config: ApiConfig) -> TestApp {
     TestApp {
         addr,
         client: reqwest::Client::new(),
-        data_dir: config.data_dir.clone(),
+        data_dir: config.service.data_dir.clone(),
         token: config.token.clone(),
         state,
         config,

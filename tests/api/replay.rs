@@ -2,7 +2,7 @@
 //! data (one stationary camera, ten frames, ground truth).
 
 use crate::spawn_app;
-use pregrasp::api::cli::ReplayArgs;
+use pregrasp::tools::replay::ReplayArgs;
 use std::path::PathBuf;
 
 fn shared() -> PathBuf {
@@ -25,7 +25,7 @@ async fn replay_streams_a_sequence_and_asks_for_decisions() {
         out: Some(out.clone()),
         no_decisions: false,
     };
-    let summary = pregrasp::api::replay::run(args.clone()).await.expect("replay");
+    let summary = pregrasp::tools::replay::run(args.clone()).await.expect("replay");
     assert_eq!(summary.frames_sent, 10, "{summary:?}");
     assert_eq!(summary.frames_refused, 0);
     assert_eq!(summary.robot_frames, 10, "one answer per reference frame");
@@ -57,7 +57,7 @@ async fn replay_streams_a_sequence_and_asks_for_decisions() {
     assert!(summary.decisions <= summary.robot_frames * 2, "{summary:?}");
 
     // A second replay of the same sequence (its stamps start over) is taken whole.
-    let again = pregrasp::api::replay::run(args).await.expect("second replay");
+    let again = pregrasp::tools::replay::run(args).await.expect("second replay");
     assert_eq!(again.frames_sent, 10, "{again:?}");
     assert_eq!(again.frames_refused, 0, "{again:?}");
 }

@@ -285,6 +285,18 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
     // The gripper is placed on the estimate: within the object's reach of the truth.
     let wfg = pose_from_json(&d["world_from_gripper"]);
     assert!((wfg.translation.vector - scene.world_from_object.translation.vector).norm() < 0.3);
+    // Its context: the stamp of the distribution it used, and the one gripper pose in the
+    // reference (robot camera), base and world frames.
+    let stamp = d["stamp_ns"].as_i64().expect("stamp_ns");
+    // (a step that fuses only a late external frame has that frame's stamp)
+    assert!((round_stamp(9) - 300_000_000..=round_stamp(9)).contains(&stamp), "{d}");
+    let rfg = pose_from_json(&d["reference_from_gripper"]);
+    let bfg = pose_from_json(&d["base_from_gripper"]);
+    let close = |a: &Pose, b: &Pose| {
+        (a.translation.vector - b.translation.vector).norm() < 1e-6 && a.rotation.angle_to(&b.rotation) < 1e-6
+    };
+    assert!(close(&bfg, &(base_from_camera * rfg)), "{d}");
+    assert!(close(&wfg, &(world_from_base(9) * bfg)), "{d}");
     assert!(app.get_json(&format!("/tracks/{id}")).await["decision"]["p_success"].is_number());
     // That query made the track watched: after the next step the worker draws its samples,
     // decisions read them without waiting for the tracker, and identical queries within one
@@ -486,7 +498,7 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
 
     // Tracks a client starts are capped per object (4 by default): the one beyond is refused
     // with a problem document and the tracks stay as they were.
-    let cap = app.config.limits.max_tracks_per_object;
+    let cap = app.config.service.limits.max_tracks_per_object;
     let mut refused = None;
     for _ in 0..cap + 1 {
         let before = track_ids(&app).await;

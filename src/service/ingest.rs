@@ -1,10 +1,11 @@
-//! The fixed-lag ingest buffer between the HTTP handlers and the tracking worker.
+//! Ingest: frames and odometry as domain types (`CameraFrame`, [`OdometryMsg`]) from any
+//! transport, checked against the registry, into the fixed-lag buffer the tracking worker reads.
 //!
 //! Policy (stated once):
 //! - Stamps are nanoseconds in `0..=MAX_STAMP_NS`; every difference of stamps is computed with
 //!   checked arithmetic.
 //! - The *newest stamp* is kept per camera (and for odometry). A frame whose stamp is older than
-//!   its camera's newest, or the newest of any camera, minus `window_ns` is refused (409, counted
+//!   its camera's newest, or the newest of any camera, minus `window_ns` is refused as stale (counted
 //!   in `frames_stale`); so is a frame whose stamp this camera already sent. Late frames inside
 //!   the window are accepted, in any order.
 //! - A jump back by more than `clock_reset_ns` (default: the larger of the window and one
@@ -23,14 +24,17 @@
 //! - Odometry is kept in a bounded, time-sorted buffer and interpolated at each step's
 //!   reference time (linear in translation, slerp in rotation).
 
-use crate::camera::{ColorImage, DepthImage};
+use super::ServiceState;
+use super::checks::shorten;
+use super::error::ServiceError;
+use super::events::ServiceEvent;
 use crate::geometry::Pose;
+use crate::sensor::{CameraFrame, Detection};
 use nalgebra::{Isometry3, Translation3};
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::time::Instant;
-
-use super::types::DetectionDto;
 
 /// Most odometry samples kept.
 pub const MAX_ODOMETRY_SAMPLES: usize = 4_096;
@@ -42,16 +46,19 @@ pub const MAX_STAMP_NS: i64 = 4_102_444_800_000_000_000;
 /// Smallest backwards jump treated as a restarted clock.
 pub const MIN_CLOCK_RESET_NS: i64 = 1_000_000_000;
 
-/// One camera image as received.
+/// One camera frame as received (checked against its camera), with its arrival time.
 #[derive(Debug, Clone)]
 pub struct IngestedFrame {
-    pub camera: String,
-    pub stamp_ns: i64,
-    pub depth: DepthImage,
-    pub color: Option<ColorImage>,
-    pub detections: Vec<DetectionDto>,
+    pub frame: CameraFrame,
     /// When the server received it (for ingest-to-estimate latency).
     pub received: Instant,
+}
+
+impl std::ops::Deref for IngestedFrame {
+    type Target = CameraFrame;
+    fn deref(&self) -> &CameraFrame {
+        &self.frame
+    }
 }
 
 /// One odometry message.
@@ -371,6 +378,139 @@ impl IngestBuffer {
     }
 }
 
+/// Most detections in one frame.
+pub const MAX_DETECTIONS_PER_FRAME: usize = 256;
+
+/// What happened to an accepted frame, as the service reports it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FrameReceipt {
+    pub camera: String,
+    pub stamp_ns: i64,
+    /// Frames waiting for the tracker, all cameras.
+    pub queue_depth: usize,
+    /// Waiting frames of this camera dropped to make room.
+    pub dropped: usize,
+}
+
+impl ServiceState {
+    /// Checks a frame's detections: known objects, a score in 0..=1, a box of positive size
+    /// inside the image.
+    pub fn check_detections(&self, detections: &[Detection], width: u32, height: u32) -> Result<(), ServiceError> {
+        if detections.len() > MAX_DETECTIONS_PER_FRAME {
+            return Err(ServiceError::Invalid(format!(
+                "a frame carries at most {MAX_DETECTIONS_PER_FRAME} detections, got {}",
+                detections.len()
+            )));
+        }
+        let reg = self.registry();
+        let (w, h) = (f64::from(width), f64::from(height));
+        for d in detections {
+            if !reg.objects.contains_key(&d.object) {
+                return Err(ServiceError::Invalid(format!(
+                    "detection names unknown object '{}'",
+                    shorten(&d.object)
+                )));
+            }
+            let b = d.bbox_xywh_px;
+            let inside = b.iter().all(|v| v.is_finite())
+                && b[0] >= 0.0
+                && b[1] >= 0.0
+                && b[2] > 0.0
+                && b[3] > 0.0
+                && b[0] + b[2] <= w
+                && b[1] + b[3] <= h;
+            if !inside || !(0.0..=1.0).contains(&d.score) {
+                return Err(ServiceError::Invalid(format!(
+                    "detection of '{}' needs a box of positive size inside the {w}x{h} image and a score in 0..=1, got {b:?} score {}",
+                    d.object, d.score
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// Takes one camera frame from any transport: the camera must be registered with the
+    /// frame's intrinsics, the images must have its size and the detections must pass
+    /// [`ServiceState::check_detections`]; then the frame is queued for the tracker (see the
+    /// module's policy for stale frames and restarted clocks).
+    pub fn ingest_frame(&self, frame: CameraFrame, received: Instant) -> Result<FrameReceipt, ServiceError> {
+        check_stamp(frame.stamp_ns).map_err(|e| ServiceError::Invalid(format!("stamp_ns: {e}")))?;
+        let intrinsics = self
+            .registry()
+            .cameras
+            .get(&frame.camera)
+            .map(|c| c.intrinsics)
+            .ok_or_else(|| ServiceError::not_found("camera", frame.camera.clone()))?;
+        if frame.intrinsics != intrinsics {
+            return Err(ServiceError::Invalid(format!(
+                "the frame's intrinsics differ from camera '{}''s registered ones",
+                frame.camera
+            )));
+        }
+        let (w, h) = (intrinsics.width, intrinsics.height);
+        let sizes_ok = frame.depth.width == w
+            && frame.depth.height == h
+            && frame.color.as_ref().is_none_or(|c| c.width == w && c.height == h);
+        if !sizes_ok {
+            return Err(ServiceError::Invalid(format!(
+                "images must be {w}x{h} like camera '{}'",
+                frame.camera
+            )));
+        }
+        self.check_detections(&frame.detections, w, h)?;
+        let (camera, stamp_ns) = (frame.camera.clone(), frame.stamp_ns);
+        let pushed = self.ingest().push_frame(IngestedFrame { frame, received });
+        match pushed {
+            Ok(Pushed { dropped, clock_reset }) => {
+                if clock_reset {
+                    tracing::info!(
+                        "camera '{camera}' restarted its clock (stamp {stamp_ns} ns); its queue starts over"
+                    );
+                }
+                self.metrics.frames_accepted.fetch_add(1, Ordering::Relaxed);
+                self.metrics.frames_dropped.fetch_add(dropped as u64, Ordering::Relaxed);
+                self.wake.notify_one();
+                self.publish(ServiceEvent::Frame {
+                    camera: camera.clone(),
+                    stamp_ns,
+                });
+                Ok(FrameReceipt {
+                    camera,
+                    stamp_ns,
+                    queue_depth: self.ingest().pending(),
+                    dropped,
+                })
+            }
+            Err(e @ (IngestError::TooOld { .. } | IngestError::Duplicate { .. })) => {
+                self.metrics.frames_stale.fetch_add(1, Ordering::Relaxed);
+                Err(ServiceError::Stale(e.to_string()))
+            }
+            Err(e @ IngestError::BadStamp { .. }) => Err(ServiceError::Invalid(e.to_string())),
+            Err(e) => Err(ServiceError::Stale(e.to_string())),
+        }
+    }
+
+    /// Takes one odometry message (checked stamp; a stamp far behind the newest restarts the
+    /// odometry's clock and with it the tracks).
+    pub fn ingest_odometry(&self, msg: OdometryMsg) -> Result<(), ServiceError> {
+        let stamp_ns = msg.stamp_ns;
+        super::checks::check_pose("odom_from_base", &msg.odom_from_base)?;
+        super::checks::check_pose("world_from_odom", &msg.world_from_odom)?;
+        if let Some(p) = &msg.base_from_camera {
+            super::checks::check_pose("base_from_camera", p)?;
+        }
+        let reset = self.ingest().push_odometry(msg).map_err(|e| match e {
+            IngestError::BadStamp { .. } => ServiceError::Invalid(e.to_string()),
+            e => ServiceError::Stale(e.to_string()),
+        })?;
+        if reset {
+            tracing::info!("odometry restarted its clock (stamp {stamp_ns} ns); tracking starts over");
+        }
+        self.metrics.odometry_accepted.fetch_add(1, Ordering::Relaxed);
+        Ok(())
+    }
+}
+
 /// `a` at t = 0, `b` at t = 1.
 pub fn interpolate(a: &Pose, b: &Pose, t: f64) -> Pose {
     let tr = a.translation.vector.lerp(&b.translation.vector, t);
@@ -385,16 +525,81 @@ mod tests {
 
     fn frame(camera: &str, stamp_ns: i64) -> IngestedFrame {
         IngestedFrame {
-            camera: camera.into(),
-            stamp_ns,
-            depth: DepthImage::zeros(2, 2),
-            color: None,
-            detections: vec![],
+            frame: CameraFrame {
+                camera: camera.into(),
+                stamp_ns,
+                intrinsics: crate::camera::Intrinsics::new(2, 2, [2.0, 0.0, 1.0, 0.0, 2.0, 1.0, 0.0, 0.0, 1.0])
+                    .expect("intrinsics"),
+                depth: crate::camera::DepthImage::zeros(2, 2),
+                color: None,
+                detections: vec![],
+            },
             received: Instant::now(),
         }
     }
 
     const MS: i64 = 1_000_000;
+
+    /// The service takes frames and odometry as domain types, checked as HTTP's are: a second
+    /// transport (a ROS bridge) needs no DTO.
+    #[test]
+    fn the_service_checks_domain_frames_and_odometry_against_its_registry() {
+        use crate::camera::{DepthImage, Intrinsics};
+        use crate::sensor::CameraMount;
+        use crate::service::{Service, ServiceConfig, ServiceError};
+        let tmp = tempfile::tempdir().unwrap();
+        let service = Service::open(ServiceConfig::new(tmp.path().to_path_buf())).unwrap();
+        let k = Intrinsics::from_focal(8, 6, 10.0).unwrap();
+        let mount = CameraMount::Stationary {
+            world_from_camera: Pose::identity(),
+        };
+        service.register_camera("ext1", k, mount).unwrap();
+        let frame = |camera: &str, w: u32, dets: Vec<Detection>| CameraFrame {
+            camera: camera.into(),
+            stamp_ns: 1_000 * MS,
+            intrinsics: Intrinsics::from_focal(w, 6, 10.0).unwrap(),
+            depth: DepthImage::zeros(w, 6),
+            color: None,
+            detections: dets,
+        };
+        let now = Instant::now();
+        assert!(matches!(
+            service.ingest_frame(frame("nope", 8, vec![]), now),
+            Err(ServiceError::NotFound { .. })
+        ));
+        assert!(matches!(
+            service.ingest_frame(frame("ext1", 10, vec![]), now),
+            Err(ServiceError::Invalid(_))
+        ));
+        let unknown = Detection {
+            object: "mug".into(),
+            bbox_xywh_px: [0.0, 0.0, 2.0, 2.0],
+            score: 0.5,
+        };
+        assert!(matches!(
+            service.ingest_frame(frame("ext1", 8, vec![unknown]), now),
+            Err(ServiceError::Invalid(_))
+        ));
+        let receipt = service.ingest_frame(frame("ext1", 8, vec![]), now).unwrap();
+        assert_eq!((receipt.queue_depth, receipt.dropped), (1, 0));
+        let far = OdometryMsg {
+            stamp_ns: 1_000 * MS,
+            odom_from_base: Isometry3::translation(2_000.0, 0.0, 0.0),
+            covariance: None,
+            world_from_odom: Pose::identity(),
+            base_from_camera: None,
+        };
+        assert!(matches!(
+            service.ingest_odometry(far.clone()),
+            Err(ServiceError::Invalid(_))
+        ));
+        let near = OdometryMsg {
+            odom_from_base: Pose::identity(),
+            ..far
+        };
+        service.ingest_odometry(near).unwrap();
+        assert_eq!(service.ingest().odometry_len(), 1);
+    }
 
     #[test]
     fn late_frames_inside_the_window_are_taken_older_ones_refused() {

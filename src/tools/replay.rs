@@ -4,12 +4,12 @@
 //! frame, detections with every frame, and (when the data has it) the ground-truth channel for
 //! display. At every robot frame it asks for the tracks and a decision for each.
 
-use super::cli::ReplayArgs;
 use crate::dataset::Sequence;
 use crate::geometry::Pose;
 use anyhow::Context;
 use serde::Serialize;
 use serde_json::{Value, json};
+use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 /// Seed of the stand-in detections.
@@ -48,8 +48,41 @@ pub struct ReplaySummary {
     pub wall_s: f64,
 }
 
+/// A pose as the API takes it (`{rotation_xyzw, translation_m}`).
 fn pose_json(p: &Pose) -> Value {
-    serde_json::to_value(super::types::PoseDto::from_pose(p)).unwrap_or_default()
+    serde_json::to_value(crate::geometry::PoseXyzw::from_pose(p)).unwrap_or_default()
+}
+
+/// Options of `pregrasp replay`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ReplayArgs {
+    /// A sequence folder (the generator's multi-view BOP format).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Server base URL.
+    #[arg(long, default_value = "http://127.0.0.1:8080")]
+    pub server: String,
+    /// Playback rate (1 = real time; 0 = as fast as the server takes it).
+    #[arg(long, default_value_t = 1.0)]
+    pub rate: f64,
+    /// Bearer token.
+    #[arg(long, env = "PREGRASP_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// Write the answers (per robot frame: time, estimate, decision) as JSON.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Stream only: ask for no estimate or decision at each robot frame (a soak's streamer,
+    /// whose planners ask on their own).
+    #[arg(long)]
+    pub no_decisions: bool,
+}
+
+/// `pregrasp replay`: streams the sequence and prints the summary.
+pub fn cli(args: ReplayArgs) -> anyhow::Result<()> {
+    let rt = tokio::runtime::Runtime::new()?;
+    let summary = rt.block_on(run(args))?;
+    println!("{}", serde_json::to_string_pretty(&summary)?);
+    Ok(())
 }
 
 struct Client {

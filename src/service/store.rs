@@ -137,6 +137,27 @@ impl Store {
     }
 }
 
+/// Serde of a [`crate::geometry::Pose`] in stored records as `{rotation_xyzw, translation_m}`
+/// (the JSON of earlier versions, and the one people read).
+pub mod pose_xyzw {
+    use crate::geometry::{Pose, PoseXyzw};
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    pub fn serialize<S: Serializer>(p: &Pose, s: S) -> Result<S::Ok, S::Error> {
+        PoseXyzw::from_pose(p).serialize(s)
+    }
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Pose, D::Error> {
+        PoseXyzw::deserialize(d)?.to_pose().map_err(serde::de::Error::custom)
+    }
+}
+
+/// A field that is `None` when its stored JSON no longer parses (a record written by an
+/// earlier version keeps the rest of its fields).
+pub fn lenient<'de, D: serde::Deserializer<'de>, T: DeserializeOwned>(d: D) -> Result<Option<T>, D::Error> {
+    let v = <serde_json::Value as serde::Deserialize>::deserialize(d)?;
+    Ok(serde_json::from_value(v).ok())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

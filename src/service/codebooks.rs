@@ -4,8 +4,8 @@
 //! cached on disk under `<data dir>/codebooks` (keyed by mesh content, grid and config), so a
 //! restart loads them instead of rebuilding.
 
-use super::AppState;
-use super::objects::{CodebookState, CodebookStatus, set_codebook_status};
+use super::registry::{CodebookState, CodebookStatus};
+use super::{Service, ServiceState};
 use crate::geometry::RotationGrid;
 use crate::render::Renderer;
 use crate::tracker::Codebook;
@@ -72,7 +72,7 @@ struct BuildTag {
 }
 
 impl BuildTag {
-    fn is_current(&self, state: &AppState) -> bool {
+    fn is_current(&self, state: &ServiceState) -> bool {
         state
             .registry()
             .objects
@@ -86,7 +86,7 @@ impl BuildTag {
 struct Cancellable<'a> {
     inner: &'a dyn ViewSource,
     tag: &'a BuildTag,
-    state: &'a AppState,
+    state: &'a ServiceState,
 }
 
 impl ViewSource for Cancellable<'_> {
@@ -113,7 +113,7 @@ enum BuildError {
 }
 
 fn build(
-    state: &AppState,
+    state: &ServiceState,
     tag: &BuildTag,
     mesh: &crate::mesh::Mesh,
     step_deg: u32,
@@ -260,7 +260,7 @@ fn next_stage(reg: &super::Registry, n_stages: usize) -> Option<(String, usize)>
 }
 
 /// Starts the builder thread; it stops when `stop` is set.
-pub fn spawn_builder(state: AppState, stop: Arc<AtomicBool>) -> Option<std::thread::JoinHandle<()>> {
+pub fn spawn_builder(state: Service, stop: Arc<AtomicBool>) -> Option<std::thread::JoinHandle<()>> {
     std::thread::Builder::new()
         .name("pregrasp-codebooks".into())
         .spawn(move || {
@@ -294,7 +294,7 @@ pub fn spawn_builder(state: AppState, stop: Arc<AtomicBool>) -> Option<std::thre
                     grid_step_deg: Some(*step),
                     error,
                 };
-                let set = |s: CodebookStatus| set_codebook_status(&state, &id, &tag.content_hash, tag.use_color, s);
+                let set = |s: CodebookStatus| state.set_codebook_status(&id, &tag.content_hash, tag.use_color, s);
                 // a later stage keeps the earlier codebook in use: the object stays ready
                 let before = if i == 0 {
                     CodebookState::Building
@@ -341,7 +341,7 @@ mod tests {
     #[test]
     fn every_coarse_codebook_is_built_before_any_fine_one() {
         let object = |id: &str, status: CodebookState, stages_done: usize, error: Option<&str>| {
-            let info = crate::api::objects::ObjectInfo {
+            let info = crate::service::registry::ObjectInfo {
                 id: id.into(),
                 name: id.into(),
                 n_vertices: 8,
@@ -357,9 +357,9 @@ mod tests {
                 },
             };
             let mesh = Arc::new(crate::mesh::builtin("box").expect("builtin"));
-            (id.to_string(), crate::api::objects::ObjectEntry { info, mesh })
+            (id.to_string(), crate::service::registry::ObjectEntry { info, mesh })
         };
-        let mut reg = crate::api::Registry::default();
+        let mut reg = crate::service::Registry::default();
         // "a" has its coarse codebook, "b" and "c" none yet: "b" (then "c") first
         reg.objects.extend([
             object("a", CodebookState::Ready, 1, None),

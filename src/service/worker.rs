@@ -1,19 +1,19 @@
-//! Background work of a server: the tracking worker (a dedicated thread that steps the tracker
+//! Background work of the service: the tracking worker (a dedicated thread that steps the tracker
 //! whenever frames arrive), the codebook builder and the once-a-second stats publisher.
 //!
 //! The [`Engine`] (the tracker and what it was built from) sits behind a mutex in the state:
 //! the worker holds it while stepping, decisions hold it only to draw samples.
 
-use super::AppState;
-use super::cameras::MountDto;
 use super::decisions::Drawn;
-use super::error::ApiError;
-use super::events::ServerEvent;
-use super::ingest::{FusionSet, IngestedFrame};
-use super::tracks::{ComponentDto, ParticleDto, RotationModeDto, TrackStatusDto, TrackView, TruthDto};
-use super::types::PoseDto;
+use super::error::ServiceError;
+use super::events::ServiceEvent;
+use super::ingest::FusionSet;
+use super::tracks::{
+    MAX_PRIOR_STD_M, MIN_PRIOR_STD_DEG, MIN_PRIOR_STD_M, ParticleInWorld, PriorPose, StartTrack, TrackState, TruthError,
+};
+use super::{Service, ServiceState};
 use crate::geometry::Pose;
-use crate::tracker::{CameraFrame, CameraMount, Detection, RobotOdometry, TrackStatus, Tracker};
+use crate::tracker::{CameraFrame, CameraMount, RobotOdometry, Tracker};
 use rand::SeedableRng;
 use std::collections::{BTreeMap, HashSet};
 use std::sync::Arc;
@@ -27,7 +27,7 @@ pub struct Background {
     stats: tokio::task::JoinHandle<()>,
     worker: Option<std::thread::JoinHandle<()>>,
     builder: Option<std::thread::JoinHandle<()>>,
-    state: AppState,
+    state: Service,
 }
 
 impl Background {
@@ -46,7 +46,7 @@ impl Background {
         })
         .await;
         // A final snapshot of the tracks.
-        if let Err(e) = super::tracks::save_snapshots(&self.state) {
+        if let Err(e) = self.state.save_track_records() {
             tracing::warn!("saving track snapshots: {e}");
         }
         save_tracker_snapshot(&self.state);
@@ -54,7 +54,7 @@ impl Background {
 }
 
 /// Starts the stats task (needs a tokio runtime) and the tracking worker thread.
-pub fn start_background(state: &AppState) -> Background {
+pub fn start_background(state: &Service) -> Background {
     let stop = Arc::new(AtomicBool::new(false));
     let stats = super::events::spawn_stats_task(state.clone());
     let builder = super::codebooks::spawn_builder(state.clone(), stop.clone());
@@ -87,7 +87,10 @@ pub const VIEW_SAMPLES: usize = 10;
 pub struct Engine {
     pub tracker: Tracker,
     /// Camera set the tracker was built for.
-    cameras: BTreeMap<String, MountDto>,
+    cameras: BTreeMap<String, CameraMount>,
+    /// The robot camera in the base frame at the last step (the odometry's, else the
+    /// registered mount's).
+    base_from_reference: Option<Pose>,
     /// Per object the codebook in the tracker: (mesh hash, grid step, with colour).
     models: BTreeMap<String, (String, u32, bool)>,
     /// Stamp of the odometry given to the last step (odometry never goes back in time: a late
@@ -104,24 +107,11 @@ pub struct Engine {
 }
 
 impl Engine {
-    pub(super) fn new(state: &AppState) -> Option<Self> {
+    pub(super) fn new(state: &ServiceState) -> Option<Self> {
         let reg = state.registry();
-        let reference = super::cameras::reference_camera(&reg)?;
-        let mounts: BTreeMap<String, CameraMount> = reg
-            .cameras
-            .values()
-            .map(|c| {
-                let m = match c.mount {
-                    MountDto::Stationary { world_from_camera } => CameraMount::Stationary {
-                        world_from_camera: world_from_camera.to_pose("").unwrap_or_else(|_| Pose::identity()),
-                    },
-                    MountDto::Robot { base_from_camera } => CameraMount::Robot {
-                        base_from_camera: base_from_camera.to_pose("").unwrap_or_else(|_| Pose::identity()),
-                    },
-                };
-                (c.id.clone(), m)
-            })
-            .collect();
+        let reference = reg.reference_camera()?;
+        let mounts: BTreeMap<String, CameraMount> = reg.cameras.iter().map(|(k, c)| (k.clone(), c.mount)).collect();
+        let robot_base_from_camera = reg.robot_base_from_camera();
         // the one place the service's cap is enforced: matched detections still reach their
         // tracks (a camera joins a track at its first detection of it), unmatched ones open
         // no extra track
@@ -129,7 +119,7 @@ impl Engine {
             max_tracks_per_object: state.config.max_live_tracks_per_object,
             ..state.config.tracker.clone()
         };
-        let mut tracker = Tracker::new(config, mounts, reference);
+        let mut tracker = Tracker::new(config, mounts.clone(), reference);
         // The previous run's tracks come back as their models become ready (sync_models);
         // only tracks still listed (not stopped) are restored.
         let mut pending = Vec::new();
@@ -148,7 +138,8 @@ impl Engine {
         }
         Some(Self {
             tracker,
-            cameras: reg.cameras.iter().map(|(k, c)| (k.clone(), c.mount)).collect(),
+            cameras: mounts,
+            base_from_reference: robot_base_from_camera,
             models: BTreeMap::new(),
             odometry_stamp_ns: None,
             rng: rand_chacha::ChaCha8Rng::seed_from_u64(state.config.tracker.seed ^ 0x5eed),
@@ -159,7 +150,7 @@ impl Engine {
     }
 
     /// Adds the objects whose codebooks became ready (or changed).
-    pub(super) fn sync_models(&mut self, state: &AppState) {
+    pub(super) fn sync_models(&mut self, state: &ServiceState) {
         let objects: Vec<(String, String, bool, std::sync::Arc<crate::mesh::Mesh>)> = state
             .registry()
             .objects
@@ -216,26 +207,52 @@ impl Engine {
     }
 }
 
-/// Starts a track from a caller's prior (`world_from_object` in the world frame); returns its
-/// first view.
-pub fn start_track(
-    state: &AppState,
-    object_id: &str,
-    world_from_object: Option<Pose>,
-    reference_from_object: Option<Pose>,
-    translation_std_m: f64,
-    rotation_std_rad: Option<f64>,
-) -> Result<TrackView, ApiError> {
+impl ServiceState {
+    /// Starts a track from a caller's prior (blocking: it may wait for the tracker); returns
+    /// its first state.
+    pub fn start_track(&self, start: &StartTrack) -> Result<TrackState, ServiceError> {
+        if !self.registry().objects.contains_key(&start.object_id) {
+            return Err(ServiceError::not_found("object", start.object_id.clone()));
+        }
+        let std_m = start.translation_std_m;
+        if !(MIN_PRIOR_STD_M..=MAX_PRIOR_STD_M).contains(&std_m) {
+            return Err(ServiceError::Invalid(format!(
+                "translation_std_m must be in [{MIN_PRIOR_STD_M}, {MAX_PRIOR_STD_M}], got {std_m}"
+            )));
+        }
+        match &start.pose {
+            PriorPose::World { world_from_object } => {
+                super::checks::check_pose("world_from_object", world_from_object)?
+            }
+            PriorPose::Reference { reference_from_object } => {
+                super::checks::check_pose("reference_from_object", reference_from_object)?
+            }
+        }
+        if let Some(d) = start.rotation_std_deg
+            && !(MIN_PRIOR_STD_DEG..=180.0).contains(&d)
+        {
+            return Err(ServiceError::Invalid(format!(
+                "rotation_std_deg must be in [{MIN_PRIOR_STD_DEG}, 180], got {d}"
+            )));
+        }
+        start_track(self, start)
+    }
+}
+
+/// Starts a track from a caller's prior (checked by [`ServiceState::start_track`]); returns
+/// its first state.
+fn start_track(state: &ServiceState, start: &StartTrack) -> Result<TrackState, ServiceError> {
+    let object_id = start.object_id.as_str();
     let mut guard = state.engine.lock().unwrap_or_else(|p| p.into_inner());
     if guard.is_none() {
         *guard = Engine::new(state);
     }
     let engine = guard
         .as_mut()
-        .ok_or_else(|| ApiError::Conflict("no cameras are registered: register the cameras first".into()))?;
+        .ok_or_else(|| ServiceError::Conflict("no cameras are registered: register the cameras first".into()))?;
     engine.sync_models(state);
     if !engine.models.contains_key(object_id) {
-        return Err(ApiError::NotReady(format!(
+        return Err(ServiceError::NotReady(format!(
             "object '{object_id}' has no codebook yet (see its codebook status)"
         )));
     }
@@ -244,48 +261,42 @@ pub fn start_track(
     let tracks = engine.tracker.tracks();
     let of_object = tracks.iter().filter(|t| t.object == object_id).count();
     if of_object >= limits.max_tracks_per_object || tracks.len() >= limits.max_tracks {
-        return Err(ApiError::LimitReached(format!(
+        return Err(ServiceError::LimitReached(format!(
             "this server keeps at most {} tracks per object and {} in all (--max-tracks-per-object, --max-tracks); '{object_id}' has {of_object}, there are {}: stop one first",
             limits.max_tracks_per_object,
             limits.max_tracks,
             tracks.len()
         )));
     }
-    let reference_from_object = match (world_from_object, reference_from_object) {
-        (Some(w), _) => engine.tracker.world_from_reference().inverse() * w,
-        (None, Some(r)) => r,
-        (None, None) => {
-            return Err(ApiError::Invalid(
-                "give world_from_object or reference_from_object".into(),
-            ));
-        }
+    let reference_from_object = match start.pose {
+        PriorPose::World { world_from_object } => engine.tracker.world_from_reference().inverse() * world_from_object,
+        PriorPose::Reference { reference_from_object } => reference_from_object,
     };
     let prior = crate::tracker::TrackPrior {
         reference_from_object,
-        translation_std_m,
-        rotation_std_rad,
+        translation_std_m: start.translation_std_m,
+        rotation_std_rad: start.rotation_std_deg.map(f64::to_radians),
     };
     let id = engine
         .tracker
         .start_track(object_id, &prior)
-        .map_err(|e| ApiError::Invalid(format!("prior: {e}")))?;
+        .map_err(|e| ServiceError::Invalid(format!("prior: {e}")))?;
     let view = views(state, engine, None, &HashSet::new(), Some(id))
         .into_iter()
         .find(|v| v.id == id)
-        .ok_or_else(|| ApiError::Internal(format!("track {id} has no view")))?;
+        .ok_or_else(|| ServiceError::Internal(format!("track {id} has no view")))?;
     drop(guard);
-    let json = serde_json::to_value(&view).unwrap_or_default();
     state.tracking.publish(view.clone());
-    state.publish(ServerEvent::Track(json));
+    state.publish(ServiceEvent::Track(Arc::new(view.clone())));
     Ok(view)
 }
 
 /// Draws `n` poses from a track's distribution (reference frame) for a decision.
-pub fn draw_samples(state: &AppState, track_id: u64, n: usize) -> Result<Drawn, ApiError> {
+pub(super) fn draw_samples(state: &ServiceState, track_id: u64, n: usize) -> Result<Drawn, ServiceError> {
     let mut guard = state.engine.lock().unwrap_or_else(|p| p.into_inner());
     let known = state.tracking.board().views.contains_key(&track_id);
     if !known {
-        return Err(ApiError::not_found("track", track_id.to_string()));
+        return Err(ServiceError::not_found("track", track_id.to_string()));
     }
     // a restarted server answers about its restored tracks before the first frame arrives
     if guard.is_none() {
@@ -293,10 +304,10 @@ pub fn draw_samples(state: &AppState, track_id: u64, n: usize) -> Result<Drawn, 
     }
     let engine = guard
         .as_mut()
-        .ok_or_else(|| ApiError::not_found("track", track_id.to_string()))?;
+        .ok_or_else(|| ServiceError::not_found("track", track_id.to_string()))?;
     engine.sync_models(state);
     if engine.pending.iter().any(|t| t.track.id == track_id) {
-        return Err(ApiError::NotReady(format!(
+        return Err(ServiceError::NotReady(format!(
             "track {track_id} is restored once its object's codebook is ready"
         )));
     }
@@ -306,66 +317,34 @@ pub fn draw_samples(state: &AppState, track_id: u64, n: usize) -> Result<Drawn, 
         .iter()
         .find(|t| t.id == track_id)
         .cloned()
-        .ok_or_else(|| ApiError::not_found("track", track_id.to_string()))?;
+        .ok_or_else(|| ServiceError::not_found("track", track_id.to_string()))?;
     let estimate = engine
         .tracker
         .estimate(track_id)
-        .ok_or_else(|| ApiError::NotReady(format!("track {track_id} has no estimate yet")))?;
+        .ok_or_else(|| ServiceError::NotReady(format!("track {track_id} has no estimate yet")))?;
     let samples = engine
         .tracker
         .sample_poses(track_id, n, &mut engine.rng)
-        .ok_or_else(|| ApiError::NotReady(format!("track {track_id} has no particles yet")))?;
+        .ok_or_else(|| ServiceError::NotReady(format!("track {track_id} has no particles yet")))?;
     Ok(Drawn {
         track_id,
         object_id: track.object,
+        stamp_ns: estimate.stamp_ns,
         reference_from_object: estimate.reference_from_object,
         samples,
         world_from_reference: engine.tracker.world_from_reference(),
+        base_from_reference: engine.base_from_reference,
     })
 }
 
-fn to_camera_frame(state: &AppState, f: &IngestedFrame) -> Option<CameraFrame> {
-    let intrinsics = state
-        .registry()
-        .cameras
-        .get(&f.camera)?
-        .intrinsics
-        .to_intrinsics()
-        .ok()?;
-    Some(CameraFrame {
-        camera: f.camera.clone(),
-        stamp_ns: f.stamp_ns,
-        intrinsics,
-        depth: f.depth.clone(),
-        color: f.color.clone(),
-        detections: f
-            .detections
-            .iter()
-            .map(|d| Detection {
-                object: d.object.clone(),
-                bbox_xywh_px: d.bbox_xywh_px,
-                score: d.score,
-            })
-            .collect(),
-    })
-}
-
-fn status_dto(s: TrackStatus) -> TrackStatusDto {
-    match s {
-        TrackStatus::Initialising => TrackStatusDto::Initialising,
-        TrackStatus::Tracking => TrackStatusDto::Tracking,
-        TrackStatus::Lost => TrackStatusDto::Lost,
-    }
-}
-
-/// Builds the views of every (not stopped) track after a step, or of track `only`.
+/// Builds the states of every (not stopped) track after a step, or of track `only`.
 pub(super) fn views(
-    state: &AppState,
+    state: &ServiceState,
     engine: &mut Engine,
     latency_ms: Option<f64>,
     stopped: &HashSet<u64>,
     only: Option<u64>,
-) -> Vec<TrackView> {
+) -> Vec<TrackState> {
     let world_from_reference = engine.tracker.world_from_reference();
     let names: BTreeMap<String, String> = state
         .registry()
@@ -391,7 +370,7 @@ pub(super) fn views(
             .step_by(stride)
             .map(|p| {
                 let w = world_from_reference * nalgebra::Point3::from(p.position_in_reference_m);
-                ParticleDto {
+                ParticleInWorld {
                     position_world_m: [w.x, w.y, w.z],
                     camera: p.camera.clone(),
                     weight: p.weight,
@@ -401,52 +380,31 @@ pub(super) fn views(
         let samples_world = engine
             .tracker
             .sample_poses(t.id, VIEW_SAMPLES, &mut engine.rng)
-            .map(|s| {
-                s.poses
-                    .iter()
-                    .map(|p| PoseDto::from_pose(&(world_from_reference * p)))
-                    .collect()
-            })
+            .map(|s| s.poses.iter().map(|p| world_from_reference * p).collect())
             .unwrap_or_default();
         // the orientation error modulo the object's exact symmetries: a turn that changes
         // neither shape nor colour is no error, one the colour tells apart always is
-        let truth = truth.get(&t.object).map(|(_, w)| TruthDto {
+        let truth = truth.get(&t.object).map(|(_, w)| TruthError {
             translation_error_m: (w.translation.vector - world_from_object.translation.vector).norm(),
             orientation_error_deg: engine
                 .symmetries_of(&t.object)
                 .error_deg(&world_from_object.rotation, &w.rotation),
         });
         let decision = state.tracking.board().views.get(&t.id).and_then(|v| v.decision.clone());
-        out.push(TrackView {
+        out.push(TrackState {
             id: t.id,
             object_id: t.object.clone(),
             object_name: names.get(&t.object).cloned().unwrap_or_else(|| t.object.clone()),
-            status: status_dto(t.status),
+            status: t.status,
             stamp_ns: e.stamp_ns,
-            reference_from_object: PoseDto::from_pose(&e.reference_from_object),
-            world_from_object: PoseDto::from_pose(&world_from_object),
+            reference_from_object: e.reference_from_object,
+            world_from_object,
             translation_std_m: e.translation_std_m,
             rotation_entropy: e.rotation_entropy,
             top_mode_mass: e.rotation_modes.iter().map(|m| m.mass).fold(0.0, f64::max),
             covariance_6x6: e.covariance_6x6.iter().flatten().copied().collect(),
-            components: e
-                .components
-                .iter()
-                .map(|c| ComponentDto {
-                    camera: c.camera.clone(),
-                    weight: c.weight,
-                    mean_m: c.mean_m,
-                    covariance_m2: c.covariance_m2,
-                })
-                .collect(),
-            rotation_modes: e
-                .rotation_modes
-                .iter()
-                .map(|m| RotationModeDto {
-                    rotation_xyzw: m.rotation_xyzw,
-                    mass: m.mass,
-                })
-                .collect(),
+            components: e.components.clone(),
+            rotation_modes: e.rotation_modes.clone(),
             particles,
             samples_world,
             decision,
@@ -457,10 +415,10 @@ pub(super) fn views(
     out
 }
 
-fn step(state: &AppState, set: &FusionSet) {
+fn step(state: &ServiceState, set: &FusionSet) {
     let mut guard = state.engine.lock().unwrap_or_else(|p| p.into_inner());
     // (Re)build the tracker when the cameras changed.
-    let cameras_now: BTreeMap<String, MountDto> = state
+    let cameras_now: BTreeMap<String, CameraMount> = state
         .registry()
         .cameras
         .iter()
@@ -476,7 +434,7 @@ fn step(state: &AppState, set: &FusionSet) {
         // buffer, the tracker starts over rather than carry the robot's motion across the jump
         *guard = None;
         *state.restored.lock().unwrap_or_else(|p| p.into_inner()) = None;
-        super::tracks::forget_all(state);
+        state.forget_all_tracks();
     }
     if guard.as_ref().is_none_or(|e| e.cameras != cameras_now) {
         // the tracks carry over to the new camera set (those of a removed camera do not)
@@ -497,13 +455,13 @@ fn step(state: &AppState, set: &FusionSet) {
         engine.tracker.remove_track(id);
         engine.pending.retain(|t| t.track.id != id);
     }
-    let frames: Vec<CameraFrame> = set.frames.iter().filter_map(|f| to_camera_frame(state, f)).collect();
+    let frames: Vec<CameraFrame> = set.frames.iter().map(|f| f.frame.clone()).collect();
     if frames.is_empty() {
         return;
     }
     let stamp = frames.iter().map(|f| f.stamp_ns).max().unwrap_or(0);
     let robot_base_from_camera = cameras_now.values().find_map(|m| match m {
-        MountDto::Robot { base_from_camera } => base_from_camera.to_pose("").ok(),
+        CameraMount::Robot { base_from_camera } => Some(*base_from_camera),
         _ => None,
     });
     // odometry never goes back in time, except across a restarted camera clock
@@ -523,8 +481,9 @@ fn step(state: &AppState, set: &FusionSet) {
             base_from_camera: o.base_from_camera.unwrap_or(registered),
         })
     });
-    if odometry.is_some() {
+    if let Some(o) = &odometry {
         engine.odometry_stamp_ns = Some(odometry_stamp);
+        engine.base_from_reference = Some(o.base_from_camera);
     }
     let t0 = Instant::now();
     match engine.tracker.step(&frames, odometry.as_ref()) {
@@ -556,18 +515,17 @@ fn step(state: &AppState, set: &FusionSet) {
             ring.push(f.received.elapsed().as_micros() as u64);
         }
     }
-    state.tracking.board_mut().world_from_reference = Some(PoseDto::from_pose(&engine.tracker.world_from_reference()));
+    state.tracking.board_mut().world_from_reference = Some(engine.tracker.world_from_reference());
     drop(guard);
     for v in views {
-        let json = serde_json::to_value(&v).unwrap_or_default();
-        state.tracking.publish(v);
-        state.publish(ServerEvent::Track(json));
+        state.tracking.publish(v.clone());
+        state.publish(ServiceEvent::Track(Arc::new(v)));
     }
 }
 
 /// Draws the sample banks of the tracks planners asked about lately (see
 /// [`super::decisions::DecisionCache`]): decisions then read them without the tracker's lock.
-fn refill_sample_banks(state: &AppState, engine: &mut Engine, stopped: &HashSet<u64>) {
+fn refill_sample_banks(state: &ServiceState, engine: &mut Engine, stopped: &HashSet<u64>) {
     let generation = state.metrics.steps.load(Ordering::Relaxed);
     let world_from_reference = engine.tracker.world_from_reference();
     let mut banks = Vec::new();
@@ -595,9 +553,11 @@ fn refill_sample_banks(state: &AppState, engine: &mut Engine, stopped: &HashSet<
             drawn: Drawn {
                 track_id,
                 object_id,
+                stamp_ns: estimate.stamp_ns,
                 reference_from_object: estimate.reference_from_object,
                 samples,
                 world_from_reference,
+                base_from_reference: engine.base_from_reference,
             },
         });
     }
@@ -606,7 +566,7 @@ fn refill_sample_banks(state: &AppState, engine: &mut Engine, stopped: &HashSet<
 
 /// Writes the tracker's compact snapshot (with the restored tracks still waiting for their
 /// models, so that a restart before the codebooks are ready loses nothing).
-pub fn save_tracker_snapshot(state: &AppState) {
+pub fn save_tracker_snapshot(state: &ServiceState) {
     let snap = {
         let guard = state.engine.lock().unwrap_or_else(|p| p.into_inner());
         let Some(engine) = guard.as_ref() else { return };
@@ -635,7 +595,7 @@ pub fn save_tracker_snapshot(state: &AppState) {
 
 /// Without frames, builds the tracker from the previous run's snapshot and restores its tracks
 /// as their codebooks become ready, so that decisions about them are answered at once.
-fn restore_while_idle(state: &AppState) {
+fn restore_while_idle(state: &ServiceState) {
     let waiting = state.restored.lock().unwrap_or_else(|p| p.into_inner()).is_some();
     let mut guard = state.engine.lock().unwrap_or_else(|p| p.into_inner());
     if guard.is_none() && waiting {
@@ -648,7 +608,7 @@ fn restore_while_idle(state: &AppState) {
     }
 }
 
-fn run_worker(state: AppState, stop: Arc<AtomicBool>) {
+fn run_worker(state: Service, stop: Arc<AtomicBool>) {
     let mut last_snapshot = Instant::now();
     let mut last_tracker_snapshot = Instant::now();
     while !stop.load(Ordering::Relaxed) {
@@ -685,7 +645,7 @@ fn run_worker(state: AppState, stop: Arc<AtomicBool>) {
         }
         if last_snapshot.elapsed() >= SNAPSHOT_PERIOD {
             last_snapshot = Instant::now();
-            if let Err(e) = super::tracks::save_snapshots(&state) {
+            if let Err(e) = state.save_track_records() {
                 tracing::warn!("saving track snapshots: {e}");
             }
         }

@@ -4,18 +4,19 @@
 //! a loop. The ground-truth channel is filled so that the dashboard can plot errors (the
 //! tracker never reads it), and a decision is asked for the target every second.
 //!
-//! The frames go through the same validation and ingest path as HTTP frames
-//! ([`super::frames::ingest_frame`]); only the network hop is skipped.
+//! The frames go through the same checks and ingest path as HTTP frames
+//! ([`ServiceState::ingest_frame`]); only the network hop is skipped.
 
-use super::AppState;
-use super::cameras::{self, CameraSpec, MountDto};
-use super::decisions::{DecisionRequest, decide_blocking};
-use super::ingest::{IngestedFrame, OdometryMsg};
-use super::scene::PlaneDto;
-use super::types::{DetectionDto, IntrinsicsDto, PoseDto};
+use super::decisions::DecisionParams;
+use super::ingest::OdometryMsg;
+use super::{Service, ServiceState};
 use crate::camera::Intrinsics;
+use crate::generate::sim::{Placed, SceneSim, visible_boxes};
 use crate::geometry::Pose;
+use crate::grasp::SupportPlane;
 use crate::mesh::Mesh;
+use crate::render::ClipRange;
+use crate::sensor::{CameraFrame, CameraMount, Detection};
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 use std::sync::Arc;
@@ -53,9 +54,9 @@ pub struct DemoScene {
     pub stationary: Vec<(String, Pose)>,
     pub base_from_camera: Pose,
     pub intrinsics: Intrinsics,
-    /// The objects (instance ids 1..) and the table uploaded to the wgpu renderer, on first use;
-    /// `None` when wgpu has no adapter (the CPU rasteriser renders instead).
-    gpu_scene: std::sync::OnceLock<Option<Vec<crate::render::SceneObject>>>,
+    /// The generator's scene simulator over the objects (instance ids 1..) and the table: wgpu
+    /// (lavapipe without a GPU), the CPU rasteriser when wgpu has no adapter.
+    sim: SceneSim,
 }
 
 impl DemoScene {
@@ -73,12 +74,25 @@ impl DemoScene {
         for v in &mut table.vertices_m {
             v[2] -= 0.02;
         }
+        let objects = vec![
+            place("box", 0.05, -0.2, 0.6)?,
+            place("can", -0.1, 0.05, 0.0)?,
+            place("mug", 0.1, 0.22, 2.2)?,
+        ];
+        let placed = objects
+            .iter()
+            .map(|(_, mesh, pose)| Placed {
+                mesh: Arc::new(mesh.clone()),
+                world_from_object: *pose,
+            })
+            .collect();
+        let props = vec![Placed {
+            mesh: Arc::new(table.clone()),
+            world_from_object: Pose::identity(),
+        }];
+        let sim = SceneSim::new(placed, props, ClipRange::new(0.05, 20.0)?, DEMO_BACKGROUND_RGB);
         Ok(Self {
-            objects: vec![
-                place("box", 0.05, -0.2, 0.6)?,
-                place("can", -0.1, 0.05, 0.0)?,
-                place("mug", 0.1, 0.22, 2.2)?,
-            ],
+            objects,
             table,
             stationary: vec![
                 ("ext1".into(), look_at([-0.8, -0.9, 0.8], [0.0, 0.0, 0.05])),
@@ -86,7 +100,7 @@ impl DemoScene {
             ],
             base_from_camera: look_at([0.0, 0.0, 1.25], [1.0, 0.0, 0.55]),
             intrinsics: Intrinsics::from_focal(DEMO_WIDTH_PX, DEMO_HEIGHT_PX, DEMO_FOCAL_PX)?,
-            gpu_scene: std::sync::OnceLock::new(),
+            sim,
         })
     }
 
@@ -98,117 +112,52 @@ impl DemoScene {
         Pose::from_parts(Translation3::new(x, 0.05, -0.75), UnitQuaternion::identity())
     }
 
-    /// One camera's image from the wgpu renderer (lavapipe without a GPU); `None` when wgpu has
-    /// no adapter or the render fails.
-    fn render_gpu(&self, camera_from_world: &Pose) -> Option<crate::render::SceneRender> {
-        let renderer = super::codebooks::template_renderer()?;
-        let scene = self
-            .gpu_scene
-            .get_or_init(|| {
-                let mut out = Vec::new();
-                for (i, (_, mesh, world_from_object)) in self.objects.iter().enumerate() {
-                    out.push(crate::render::SceneObject {
-                        mesh: renderer.upload_mesh(mesh).ok()?,
-                        world_from_object: *world_from_object,
-                        instance_id: i as u16 + 1,
-                    });
-                }
-                out.push(crate::render::SceneObject {
-                    mesh: renderer.upload_mesh(&self.table).ok()?,
-                    world_from_object: Pose::identity(),
-                    instance_id: u16::MAX,
-                });
-                Some(out)
-            })
-            .as_ref()?;
-        let clip = crate::render::ClipRange::new(0.05, 20.0).ok()?;
-        match renderer.render_scene_lit(
-            &self.intrinsics,
-            camera_from_world,
-            scene,
-            clip,
-            DEMO_BACKGROUND_RGB,
-            None,
-        ) {
-            Ok(img) => Some(img),
-            Err(e) => {
-                tracing::warn!("demo render failed ({e}); using the CPU rasteriser");
-                None
-            }
-        }
-    }
-
     /// Renders one camera: depth with noise, colour, detections from the instance mask.
-    pub fn render(&self, camera: &str, world_from_camera: &Pose, stamp_ns: i64, rng: &mut impl Rng) -> IngestedFrame {
+    pub fn render(&self, camera: &str, world_from_camera: &Pose, stamp_ns: i64, rng: &mut impl Rng) -> CameraFrame {
         let k = &self.intrinsics;
-        let cfw = world_from_camera.inverse();
-        let mut img = match self.render_gpu(&cfw) {
-            Some(img) => img,
-            None => {
-                let mut list: Vec<(&Mesh, Pose)> = self.objects.iter().map(|(_, m, p)| (m, cfw * p)).collect();
-                list.push((&self.table, cfw));
-                let r = crate::tracker::raster::render(k, &list, 0.05, DEMO_BACKGROUND_RGB);
-                crate::render::SceneRender {
-                    depth: r.depth,
-                    color: r.color,
-                    instance: r.instance,
-                }
-            }
-        };
+        let mut img = self
+            .sim
+            .render(super::codebooks::template_renderer(), k, world_from_camera);
         for d in &mut img.depth.data_m {
             if *d > 0.0 {
                 *d *= 1.0 + (DEMO_DEPTH_NOISE_REL * (rng.random::<f64>() * 2.0 - 1.0)) as f32;
             }
         }
-        let mut detections = Vec::new();
-        for (i, (name, _, _)) in self.objects.iter().enumerate() {
-            let id = i as u16 + 1;
-            let (mut x0, mut y0, mut x1, mut y1, mut n) = (u32::MAX, u32::MAX, 0, 0, 0usize);
-            for y in 0..k.height {
-                for x in 0..k.width {
-                    if img.instance[(y * k.width + x) as usize] == id {
-                        (x0, y0, x1, y1, n) = (x0.min(x), y0.min(y), x1.max(x), y1.max(y), n + 1);
-                    }
-                }
-            }
-            if n >= DEMO_MIN_DETECTION_PX {
-                detections.push(DetectionDto {
-                    object: name.clone(),
-                    bbox_xywh_px: [x0 as f64, y0 as f64, (x1 - x0 + 1) as f64, (y1 - y0 + 1) as f64],
-                    score: 0.9,
-                });
-            }
-        }
-        IngestedFrame {
+        let boxes = visible_boxes(&self.sim.visible_masks(&img), k.width);
+        let detections = self
+            .objects
+            .iter()
+            .zip(boxes)
+            .filter(|(_, b)| b.px_count >= DEMO_MIN_DETECTION_PX as u64)
+            .map(|((name, _, _), b)| Detection {
+                object: name.clone(),
+                bbox_xywh_px: b.bbox_xywh_px.map(|v| v as f64),
+                score: 0.9,
+            })
+            .collect();
+        CameraFrame {
             camera: camera.to_string(),
             stamp_ns,
+            intrinsics: self.intrinsics,
             depth: img.depth,
             color: Some(img.color),
             detections,
-            received: Instant::now(),
         }
     }
 }
 
 /// Registers the demo's cameras, objects and support plane.
-pub fn register(state: &AppState, scene: &DemoScene) -> anyhow::Result<()> {
-    let intrinsics = IntrinsicsDto::from_intrinsics(&scene.intrinsics);
+pub fn register(state: &ServiceState, scene: &DemoScene) -> anyhow::Result<()> {
     for (id, pose) in &scene.stationary {
-        let spec = CameraSpec {
-            intrinsics,
-            mount: MountDto::Stationary {
-                world_from_camera: PoseDto::from_pose(pose),
-            },
+        let mount = CameraMount::Stationary {
+            world_from_camera: *pose,
         };
-        cameras::register(state, cameras::validate(id, spec)?)?;
+        state.register_camera(id, scene.intrinsics, mount)?;
     }
-    let spec = CameraSpec {
-        intrinsics,
-        mount: MountDto::Robot {
-            base_from_camera: PoseDto::from_pose(&scene.base_from_camera),
-        },
+    let mount = CameraMount::Robot {
+        base_from_camera: scene.base_from_camera,
     };
-    cameras::register(state, cameras::validate("robot", spec)?)?;
+    state.register_camera("robot", scene.intrinsics, mount)?;
     for (name, mesh, _) in &scene.objects {
         let same = state
             .registry()
@@ -216,10 +165,10 @@ pub fn register(state: &AppState, scene: &DemoScene) -> anyhow::Result<()> {
             .get(name)
             .is_some_and(|o| o.info.content_hash == mesh.content_hash());
         if !same {
-            super::objects::register_mesh(state, name, name, mesh.clone(), true)?;
+            state.register_object(name, name, mesh.clone(), true)?;
         }
     }
-    *state.support_plane.lock().unwrap_or_else(|p| p.into_inner()) = Some(PlaneDto {
+    *state.support_plane.lock().unwrap_or_else(|p| p.into_inner()) = Some(SupportPlane {
         normal: [0.0, 0.0, 1.0],
         point_m: [0.0, 0.0, 0.0],
     });
@@ -234,18 +183,18 @@ pub fn register(state: &AppState, scene: &DemoScene) -> anyhow::Result<()> {
 /// path at each loop): the tracks, the waiting frames, the odometry buffer and the newest
 /// stamps, so that no step fuses a frame of the last loop or interpolates odometry across
 /// the jump.
-pub fn reset_tracking(state: &AppState) {
+pub fn reset_tracking(state: &ServiceState) {
     let mut engine = state.engine.lock().unwrap_or_else(|p| p.into_inner());
     *engine = None;
     // under the engine's lock: the worker cannot step between the two
     state.ingest().clear();
     *state.restored.lock().unwrap_or_else(|p| p.into_inner()) = None;
     drop(engine);
-    super::tracks::forget_all(state);
+    state.forget_all_tracks();
 }
 
 /// Registers the demo scene and starts streaming it (returns the streaming thread's stop flag).
-pub fn start(state: AppState) -> anyhow::Result<Arc<AtomicBool>> {
+pub fn start(state: Service) -> anyhow::Result<Arc<AtomicBool>> {
     let scene = DemoScene::new()?;
     register(&state, &scene)?;
     let stop = Arc::new(AtomicBool::new(false));
@@ -256,7 +205,7 @@ pub fn start(state: AppState) -> anyhow::Result<Arc<AtomicBool>> {
     Ok(stop)
 }
 
-fn run(state: AppState, scene: DemoScene, stop: Arc<AtomicBool>) {
+fn run(state: Service, scene: DemoScene, stop: Arc<AtomicBool>) {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
     let t_start = Instant::now();
     let period_s = 1.0 / DEMO_CAMERA_HZ;
@@ -295,19 +244,21 @@ fn run(state: AppState, scene: DemoScene, stop: Arc<AtomicBool>) {
                 Some(p) => *p,
                 None => {
                     let world_from_base = scene.world_from_base(t_loop);
-                    state.metrics.odometry_accepted.fetch_add(1, Ordering::Relaxed);
-                    let _ = state.ingest().push_odometry(OdometryMsg {
+                    let odometry = OdometryMsg {
                         stamp_ns,
                         odom_from_base: world_from_base,
                         covariance: None,
                         world_from_odom: Pose::identity(),
                         base_from_camera: Some(scene.base_from_camera),
-                    });
+                    };
+                    if let Err(e) = state.ingest_odometry(odometry) {
+                        tracing::debug!("demo odometry refused: {e}");
+                    }
                     world_from_base * scene.base_from_camera
                 }
             };
             let frame = scene.render(camera, &world_from_camera, stamp_ns, &mut rng);
-            if let Err(e) = super::frames::ingest_frame(&state, frame) {
+            if let Err(e) = state.ingest_frame(frame, Instant::now()) {
                 tracing::debug!("demo frame refused: {e}");
             }
         }
@@ -323,11 +274,11 @@ fn run(state: AppState, scene: DemoScene, stop: Arc<AtomicBool>) {
                 .map(|v| v.id)
                 .collect();
             for id in targets {
-                let req = DecisionRequest {
-                    n_samples: Some(300),
-                    ..DecisionRequest::default()
+                let params = DecisionParams {
+                    n_samples: 300,
+                    ..DecisionParams::default()
                 };
-                if let Err(e) = decide_blocking(&state, id, &req) {
+                if let Err(e) = state.decide(id, &params) {
                     tracing::debug!("demo decision for track {id}: {e}");
                 }
             }
