@@ -74,11 +74,10 @@ pub struct ServeArgs {
     /// Fusion window and fixed lag, milliseconds.
     #[arg(long, default_value_t = 300)]
     pub window_ms: u64,
-    /// Grid step (degrees) of a finer codebook built in the background after the coarse
-    /// 10-degree one (e.g. 5, the paper's grid; tracks carry over to it); 10 keeps the coarse
-    /// one only. Must divide 180. Default 10: measured in the demo (3 objects, 2 cores), the
-    /// 5-degree grid makes a step take about 0.7 s and the process 1.45 GB.
-    #[arg(long, default_value_t = 10, value_parser = parse_grid_step)]
+    /// Grid step (degrees) of the finer codebook built in the background after the coarse
+    /// 10-degree one (5: the paper's grid; tracks carry over to it); 10 keeps the coarse one
+    /// only. Must divide 180.
+    #[arg(long, default_value_t = 5, value_parser = parse_grid_step)]
     pub codebook_step_deg: u32,
 }
 
