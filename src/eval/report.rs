@@ -403,6 +403,11 @@ pub struct SequenceSummary {
     pub audited: usize,
     #[serde(default)]
     pub audit_outside: usize,
+    /// Bins matched and active bins kept per step, summed over the tracks.
+    #[serde(default)]
+    pub matched_bins_per_step: f64,
+    #[serde(default)]
+    pub active_bins_per_step: f64,
 }
 
 /// `results.json`.

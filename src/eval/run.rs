@@ -363,6 +363,7 @@ pub fn evaluate_sequence(
         .collect();
     let plan = &plan[..cfg.max_frames.map_or(plan.len(), |m| m.min(plan.len()))];
     let (mut step_s, mut audited, mut audit_outside) = (0.0, 0, 0);
+    let (mut matched_sum, mut active_sum) = (0usize, 0usize);
     for &(frame_id, stamp_ns) in plan {
         let frames = frames_of_step(seq, &cameras, frame_id, &models, cfg.detection_seed)?;
         let odometry = robot_fed
@@ -381,6 +382,8 @@ pub fn evaluate_sequence(
         step_s += t_step.elapsed().as_secs_f64();
         audited += rep.audited;
         audit_outside += rep.audit_outside;
+        matched_sum += rep.matched_bins;
+        active_sum += rep.active_bins;
 
         // --- scoring: ground truth from here on, never fed back ---
         let truths = objects_in_reference(seq, frame_id);
@@ -490,6 +493,8 @@ pub fn evaluate_sequence(
         step_s,
         audited,
         audit_outside,
+        matched_bins_per_step: matched_sum as f64 / plan.len().max(1) as f64,
+        active_bins_per_step: active_sum as f64 / plan.len().max(1) as f64,
     };
     Ok(SequenceOutcome {
         summary,

@@ -530,7 +530,7 @@ mod tests {
             column_of: vec![0, 1, 2],
         };
         let mut sparse = dense.clone();
-        sparse.prune(&tables, 1e-6, usize::MAX);
+        sparse.prune(&tables, 1e-6, 1.0, usize::MAX);
         assert_eq!(sparse.active, vec![5, 7, 2000, nb as u32 - 1]);
         for rot in [&dense, &sparse] {
             let set = ParticleSet {

@@ -112,6 +112,9 @@ pub struct MatchingConfig {
     pub refine_cells: usize,
     /// The whole grid is matched once every this many steps, one slice per step.
     pub slice_steps: usize,
+    /// A bin stays active while some column's density there is above this many times the
+    /// column's floor (or the prior floor): the rest of a plateau goes to the floor.
+    pub keep_above_floor: f32,
     /// Most active bins per track (the highest peak densities are kept).
     pub max_active_bins: usize,
     /// Also find, at every step, the bin of the whole grid where the heaviest particle's
@@ -127,7 +130,8 @@ impl Default for MatchingConfig {
             dense: false,
             refine_cells: 48,
             slice_steps: 30,
-            max_active_bins: 48_000,
+            keep_above_floor: 2.0,
+            max_active_bins: 16_000,
             audit: false,
         }
     }

@@ -218,10 +218,11 @@ impl RotationState {
         self.column_of = column_of;
     }
 
-    /// Drops the bins where no column holds more than `max(its floor, floor_rel)` times the
-    /// bin's volume (the next update's prior is that floor there anyway); keeps at most
-    /// `max_active` bins (the highest peak density first); sorts the bins and renormalises.
-    pub fn prune(&mut self, tables: &GridTables, floor_rel: f32, max_active: usize) {
+    /// Drops the bins where no column holds more than `margin` times `max(its floor,
+    /// floor_rel)` times the bin's volume (they go to the floor: the next update's prior is at
+    /// least `floor_rel` there anyway); keeps at most `max_active` bins (the highest peak
+    /// density first); sorts the bins and renormalises each column.
+    pub fn prune(&mut self, tables: &GridTables, floor_rel: f32, margin: f32, max_active: usize) {
         let nc = self.n_cols();
         if nc == 0 {
             self.active.clear();
@@ -238,7 +239,7 @@ impl RotationState {
                 let vol = tables.volume(*b as usize) as f32;
                 let row = &self.values[a * nc..(a + 1) * nc];
                 let peak = row.iter().zip(&lvl).map(|(v, l)| v / (l * vol)).fold(0f32, f32::max);
-                (peak > 1.0).then_some((*b, peak, a))
+                (peak > margin).then_some((*b, peak, a))
             })
             .collect();
         if keep.len() > max_active {
@@ -742,7 +743,7 @@ mod tests {
         assert_eq!(s.column_of, vec![0, 0, 1, 0]);
         assert_eq!(s.values[1], s.values[0] * 2.0);
         // pruning with a high floor drops everything and leaves unit mass
-        s.prune(&tables, 1e6, usize::MAX);
+        s.prune(&tables, 1e6, 1.0, usize::MAX);
         assert!(s.active.is_empty());
         for m in s.column_masses(&tables) {
             assert!((m - 1.0).abs() < 1e-4);

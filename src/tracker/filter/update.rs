@@ -392,7 +392,9 @@ impl Tracker {
         }
         if !matching.dense {
             let floor_rel = self.config.prior_floor_rel as f32;
-            self.states[ti].rot.prune(&tables, floor_rel, matching.max_active_bins);
+            self.states[ti]
+                .rot
+                .prune(&tables, floor_rel, matching.keep_above_floor, matching.max_active_bins);
         } else if had_evidence {
             // the dense reference keeps every bin, in order
             let s = &mut self.states[ti];
