@@ -46,6 +46,7 @@
 //! decision and its reasons), `calibration.rs` (predicted vs observed), `view.rs`
 //! (next-best-view suggestion), `convert.rs` (nalgebra <-> parry).
 
+pub mod calibrated;
 pub mod calibration;
 pub mod candidates;
 pub mod convert;
@@ -55,11 +56,14 @@ pub mod hull;
 pub mod object;
 pub mod view;
 
+pub use calibrated::{
+    AnswerSmoother, Calibration, CalibrationMap, CalibrationStatus, GraspRule, RuleQuantity, SmoothedAnswer,
+};
 pub use calibration::{CalibrationRecord, CalibrationReport, ReliabilityBin, calibration_report};
 pub use candidates::{Grasp, generate_candidates};
 pub use decision::{
     AxisDriver, Decision, DecisionQuery, FailureTest, Motion, PoseOutcome, RankedGrasp, Reason, Verdict, decide,
-    evaluate_pose, success_on_pose, wilson_interval,
+    decide_calibrated, evaluate_pose, success_on_pose, wilson_interval,
 };
 pub use gripper::{Gripper, PadGeometry};
 pub use object::{GraspObject, SolidKind};
@@ -86,6 +90,10 @@ pub enum GraspError {
     NoCandidate(String),
     #[error("geometry query unsupported by parry3d: {0}")]
     Unsupported(String),
+    #[error("calibration map: {0}")]
+    Calibration(String),
+    #[error("calibration map fitted for settings {map}, running {running}: refit it (`pregrasp calibrate`)")]
+    StaleCalibration { map: String, running: String },
 }
 
 /// The plane the object stands on (the table), in the frame of the samples. `normal` points
