@@ -15,9 +15,10 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 /// The rule must keep the share of failing `grasp` answers on the fitting data at or below
-/// this: half the 1 % the issue allows on held-out data, a margin for the difference.
-pub const MAX_FALSE_GRASP_RATE: f64 = 0.005;
-/// ...and no approach's first `grasp` may fail on the fitting data.
+/// this (issue 20's per-frame limit) ...
+pub const MAX_FALSE_GRASP_RATE: f64 = 0.01;
+/// ...and no approach's first `grasp` may fail on the fitting data (issue 20 allows 2 of 64;
+/// a tuning set of 16 approaches cannot tell 2 of 64 from 0).
 pub const MAX_FIRST_GRASP_FAILURES: usize = 0;
 /// Rules tried: thresholds from 0.50 to 0.99 in steps of 0.01 ...
 pub const RULE_THRESHOLDS: std::ops::RangeInclusive<u32> = 50..=99;
@@ -177,12 +178,28 @@ fn score(block: &DecisionBlock, rule: GraspRule) -> RuleScore {
     }
 }
 
-/// Every rule tried on `decisions` with `map`, and the one chosen: among the rules whose
-/// `grasp` answers fail at most [`MAX_FALSE_GRASP_RATE`] of the time and whose first `grasp`
-/// fails in at most [`MAX_FIRST_GRASP_FAILURES`] approaches, the one with the highest recall
-/// within reach (ties: the higher threshold, then the shorter run, then the calibrated
-/// probability before its lower bound). `None` when no rule meets both limits.
-pub fn choose_rule(map: &CalibrationMap, decisions: &[DecisionOutcome]) -> (Option<GraspRule>, Vec<RuleScore>) {
+/// The rule chosen on a set of decisions, and whether it meets the limits.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RuleChoice {
+    pub score: RuleScore,
+    /// At most [`MAX_FALSE_GRASP_RATE`] of its `grasp` answers fail and at most
+    /// [`MAX_FIRST_GRASP_FAILURES`] first grasps.
+    pub meets_limits: bool,
+}
+
+fn meets_limits(s: &RuleScore) -> bool {
+    s.n_grasp > 0
+        && s.false_grasp_rate.is_some_and(|f| f <= MAX_FALSE_GRASP_RATE)
+        && s.first_grasp_failures <= MAX_FIRST_GRASP_FAILURES
+}
+
+/// Every rule tried on `decisions` with `map`, and the one chosen: among the rules that
+/// answer `grasp` at all and meet the limits ([`MAX_FALSE_GRASP_RATE`] of the `grasp`
+/// answers failing, [`MAX_FIRST_GRASP_FAILURES`] first grasps failing), the one with the
+/// highest recall within reach (ties: the higher threshold, the shorter run, the calibrated
+/// probability before its lower bound). When none meets them, the rule whose `grasp` answers
+/// fail least often (then: fewest failing first grasps, highest recall), flagged.
+pub fn choose_rule(map: &CalibrationMap, decisions: &[DecisionOutcome]) -> (Option<RuleChoice>, Vec<RuleScore>) {
     let calibration = Calibration::Fitted(Arc::new(map.clone()));
     let mut scores = Vec::new();
     for quantity in [RuleQuantity::Calibrated, RuleQuantity::CalibratedLower] {
@@ -200,15 +217,12 @@ pub fn choose_rule(map: &CalibrationMap, decisions: &[DecisionOutcome]) -> (Opti
             }
         }
     }
-    let ok = |s: &&RuleScore| {
-        s.false_grasp_rate.is_none_or(|f| f <= MAX_FALSE_GRASP_RATE)
-            && s.first_grasp_failures <= MAX_FIRST_GRASP_FAILURES
-    };
-    let key = |s: &RuleScore| {
+    let cmp = |a: (f64, f64, f64, f64), b: (f64, f64, f64, f64)| a.partial_cmp(&b).unwrap_or(std::cmp::Ordering::Equal);
+    let within = |s: &RuleScore| {
         (
             s.recall.unwrap_or(0.0),
             s.rule.threshold,
-            -(s.rule.run_length as f64),
+            -f64::from(s.rule.run_length),
             if s.rule.quantity == RuleQuantity::Calibrated {
                 1.0
             } else {
@@ -218,10 +232,33 @@ pub fn choose_rule(map: &CalibrationMap, decisions: &[DecisionOutcome]) -> (Opti
     };
     let best = scores
         .iter()
-        .filter(ok)
-        .max_by(|a, b| key(a).partial_cmp(&key(b)).unwrap_or(std::cmp::Ordering::Equal))
-        .map(|s| s.rule);
-    (best, scores)
+        .filter(|s| meets_limits(s))
+        .max_by(|a, b| cmp(within(a), within(b)));
+    let choice = match best {
+        Some(s) => Some(RuleChoice {
+            score: s.clone(),
+            meets_limits: true,
+        }),
+        None => {
+            let safest = |s: &RuleScore| {
+                (
+                    -s.false_grasp_rate.unwrap_or(1.0),
+                    -(s.first_grasp_failures as f64),
+                    s.recall.unwrap_or(0.0),
+                    s.rule.threshold,
+                )
+            };
+            scores
+                .iter()
+                .filter(|s| s.n_grasp > 0)
+                .max_by(|a, b| cmp(safest(a), safest(b)))
+                .map(|s| RuleChoice {
+                    score: s.clone(),
+                    meets_limits: false,
+                })
+        }
+    };
+    (choice, scores)
 }
 
 /// Sizes of the moves between successive answers.
@@ -330,15 +367,16 @@ pub struct Args {
     /// tuning seeds). Without it, `--map` is read and only reported.
     #[arg(long, num_args = 1..)]
     pub fit: Vec<PathBuf>,
-    /// `decisions.json` of runs on other seeds to report the map on (held out).
+    /// `decisions.json` of runs on other seeds to report the map on (held out; all files
+    /// together are one set).
     #[arg(long, num_args = 1..)]
     pub report: Vec<PathBuf>,
     /// The map: written with --fit (e.g. src/grasp/calibration_map.json), read without.
     #[arg(long)]
     pub map: PathBuf,
-    /// Smoothing time constants (s) to try with --fit; the smallest whose answers on the
-    /// fitting data never move by 0.3 between steps is kept.
-    #[arg(long, num_args = 1.., default_values_t = [0.0, 0.25, 0.5, 1.0])]
+    /// Smoothing time constants (s) to try with --fit: of those whose answers on the fitting
+    /// data never move by 0.3 between steps, the one whose rule has the highest recall.
+    #[arg(long, num_args = 1.., default_values_t = [0.0, 0.5, 1.0, 1.5, 2.0])]
     pub time_constant_s: Vec<f64>,
     /// Where to write the whole report as JSON (rules tried, scores per set).
     #[arg(long)]
@@ -351,7 +389,7 @@ pub struct CalibrateOutput {
     pub map: CalibrationMap,
     /// Per time constant tried: the successive jumps as served on the fitting data and the
     /// rule chosen for it.
-    pub time_constants: Vec<(f64, JumpStats, Option<RuleScore>)>,
+    pub time_constants: Vec<TimeConstantTried>,
     pub rules_tried: Vec<RuleScore>,
     pub fit: Option<SetReport>,
     pub reports: Vec<SetReport>,
@@ -386,7 +424,21 @@ fn read_map(path: &Path) -> Result<CalibrationMap, EvalError> {
     CalibrationMap::from_json(&text).map_err(|e| EvalError::Data(format!("{}: {e}", path.display())))
 }
 
-/// Fits (with `--fit`) or reads the map, then reports it on every `--report` set.
+/// One time constant tried with `--fit`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TimeConstantTried {
+    pub time_constant_s: f64,
+    /// Moves between successive answers as served with the rule chosen for it.
+    pub jumps: JumpStats,
+    pub choice: Option<RuleChoice>,
+}
+
+/// Fits (with `--fit`) or reads the map, then reports it on the `--report` decisions (all
+/// files together: one held-out set).
+///
+/// The time constant: of those whose answers on the fitting data never move by [`MAX_JUMP`]
+/// (all, with a warning, when none keeps that), the one whose chosen rule meets the limits with
+/// the highest recall (then: the lowest false grasp rate, the shorter time constant).
 pub fn calibrate(args: &Args) -> Result<CalibrateOutput, EvalError> {
     let mut time_constants = Vec::new();
     let mut rules_tried = Vec::new();
@@ -396,46 +448,65 @@ pub fn calibrate(args: &Args) -> Result<CalibrateOutput, EvalError> {
         let records = load_records(&args.fit)?;
         let fitted_on: Vec<String> = args.fit.iter().map(|p| p.display().to_string()).collect();
         let at = now_utc();
-        let mut chosen: Option<CalibrationMap> = None;
-        let mut taus = args.time_constant_s.clone();
-        taus.sort_by(f64::total_cmp);
-        for &tau in &taus {
+        let mut tried: Vec<(CalibrationMap, Vec<RuleScore>)> = Vec::new();
+        for &tau in &args.time_constant_s {
             let mut map = fit_map(&records, tau, fitted_on.clone(), at.clone());
-            let (rule, tried) = choose_rule(&map, &records.decisions);
-            let Some(rule) = rule else {
-                tracing::warn!(time_constant_s = tau, "no rule meets the failure limits");
-                time_constants.push((tau, JumpStats::of(Vec::new()), None));
-                continue;
-            };
-            map.rule = rule;
-            let cal = Calibration::Fitted(Arc::new(map.clone()));
-            let jumps = successive_jumps(&replay(&records.decisions, &cal, &rule, tau));
-            let best = tried.iter().find(|s| s.rule == rule).cloned();
-            time_constants.push((tau, jumps.clone(), best));
-            if chosen.is_none() && jumps.at_least_max_jump == 0 {
-                chosen = Some(map);
-                rules_tried = tried;
+            let (choice, scores) = choose_rule(&map, &records.decisions);
+            if let Some(c) = &choice {
+                map.rule = c.score.rule;
             }
+            let cal = Calibration::Fitted(Arc::new(map.clone()));
+            let jumps = successive_jumps(&replay(&records.decisions, &cal, &map.rule, tau));
+            time_constants.push(TimeConstantTried {
+                time_constant_s: tau,
+                jumps,
+                choice,
+            });
+            tried.push((map, scores));
         }
-        let map = chosen.ok_or_else(|| {
-            EvalError::Config(format!(
-                "no time constant of {taus:?} keeps successive answers within {MAX_JUMP} with a rule that meets the failure limits"
-            ))
-        })?;
+        let steady: Vec<usize> = (0..tried.len())
+            .filter(|&i| time_constants[i].jumps.at_least_max_jump == 0)
+            .collect();
+        let pool: Vec<usize> = if steady.is_empty() {
+            tracing::warn!("no time constant keeps successive answers within {MAX_JUMP}");
+            (0..tried.len()).collect()
+        } else {
+            steady
+        };
+        let key = |i: usize| {
+            let t = &time_constants[i];
+            t.choice.as_ref().map_or((0.0, 0.0, 0.0, 0.0), |c| {
+                (
+                    if c.meets_limits { 1.0 } else { 0.0 },
+                    c.score.recall.unwrap_or(0.0),
+                    -c.score.false_grasp_rate.unwrap_or(1.0),
+                    -t.time_constant_s,
+                )
+            })
+        };
+        let best = pool
+            .into_iter()
+            .max_by(|&a, &b| key(a).partial_cmp(&key(b)).unwrap_or(std::cmp::Ordering::Equal))
+            .ok_or_else(|| EvalError::Config("no time constant given".into()))?;
+        let (map, scores) = tried.swap_remove(best);
+        rules_tried = scores;
+        if !time_constants[best].choice.as_ref().is_some_and(|c| c.meets_limits) {
+            tracing::warn!(
+                "no rule meets the limits on the fitting data ({MAX_FALSE_GRASP_RATE} of grasps failing, {MAX_FIRST_GRASP_FAILURES} first grasps failing): the safest rule is kept"
+            );
+        }
         let text = serde_json::to_string_pretty(&map).map_err(|e| EvalError::Io(e.to_string()))?;
         std::fs::write(&args.map, text + "\n").map_err(|e| EvalError::Io(format!("{}: {e}", args.map.display())))?;
         let fit = report(&map, &records)?;
         (map, Some(fit))
     };
     let mut reports = Vec::new();
-    for p in &args.report {
-        let records = load_records(std::slice::from_ref(p))?;
+    if !args.report.is_empty() {
+        let records = load_records(&args.report)?;
         if records.settings_hash != map.settings_hash {
             return Err(EvalError::Config(format!(
-                "{} was run with settings {}, the map was fitted for {}",
-                p.display(),
-                records.settings_hash,
-                map.settings_hash
+                "the report's decisions were run with settings {}, the map was fitted for {}",
+                records.settings_hash, map.settings_hash
             )));
         }
         reports.push(report(&map, &records)?);
@@ -507,14 +578,22 @@ fn print_set(name: &str, r: &SetReport) {
 pub fn run(args: Args) -> anyhow::Result<()> {
     let out = calibrate(&args)?;
     let m = &out.map;
-    for (tau, j, s) in &out.time_constants {
+    for t in &out.time_constants {
         println!(
-            "time constant {tau} s: successive answers on the fitting data max {:.3} (>= {MAX_JUMP}: {}); rule {}",
-            j.max,
-            j.at_least_max_jump,
-            s.as_ref().map_or("none".to_string(), |s| format!(
-                "{:?} >= {} over {} answers: recall {:?}, false grasp rate {:?}",
-                s.rule.quantity, s.rule.threshold, s.rule.run_length, s.recall, s.false_grasp_rate
+            "time constant {} s: successive answers on the fitting data max {:.3} (>= {MAX_JUMP}: {}); rule {}",
+            t.time_constant_s,
+            t.jumps.max,
+            t.jumps.at_least_max_jump,
+            t.choice.as_ref().map_or("none".to_string(), |c| format!(
+                "{:?} >= {} over {} answers{}: recall {:?}, false grasp rate {:?}, first grasps failing {} of {}",
+                c.score.rule.quantity,
+                c.score.rule.threshold,
+                c.score.rule.run_length,
+                if c.meets_limits { "" } else { " (limits not met)" },
+                c.score.recall,
+                c.score.false_grasp_rate,
+                c.score.first_grasp_failures,
+                c.score.approaches
             ))
         );
     }
@@ -543,4 +622,120 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         println!("wrote {}", p.display());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::eval::calibration::DecisionFeatures;
+
+    /// One decision of an approach: the raw rate and whether the grasp succeeds on the truth.
+    fn rec(seq: &str, frame: u32, p_raw: f64, success: bool, distance_m: f64) -> DecisionOutcome {
+        DecisionOutcome {
+            sequence: seq.into(),
+            object: "can".into(),
+            frame_id: frame,
+            stamp_ns: i64::from(frame) * 100_000_000,
+            p_success: p_raw,
+            grasp: false,
+            success,
+            camera_distance_m: Some(distance_m),
+            features: Some(DecisionFeatures {
+                p_raw,
+                effective_sample_size: 100.0,
+                p_raw_repeat: None,
+                repeat_same_grasp: None,
+                grasp_label: "top".into(),
+                top_mode_mass: Some(0.9),
+                rotation_entropy: 1.0,
+                views_seeing: 3,
+                estimated_distance_m: distance_m,
+                translation_std_m: 0.01,
+            }),
+        }
+    }
+
+    /// Approaches whose raw rate climbs from 0.3 to 0.99 as the robot closes in; a frame
+    /// succeeds on the truth when its raw rate is above `0.8` except that a raw rate in
+    /// 0.85..0.9 fails in one frame of four (an overconfident tracker there).
+    fn approaches_set(n: usize) -> DecisionRecords {
+        let mut decisions = Vec::new();
+        for a in 0..n {
+            for f in 0..60u32 {
+                let p = (0.3 + 0.69 * f64::from(f) / 59.0 + 0.002 * a as f64).min(0.995);
+                let success = p > 0.8 && !(p > 0.85 && p < 0.9 && f % 4 == 0);
+                decisions.push(rec(&format!("s{a}"), f, p, success, 2.5 - 2.0 * f64::from(f) / 59.0));
+            }
+        }
+        DecisionRecords {
+            settings_hash: "h".into(),
+            settings: serde_json::json!({}),
+            data: "synthetic".into(),
+            decisions,
+        }
+    }
+
+    #[test]
+    fn the_rule_chosen_keeps_its_failures_within_the_limits_and_grasps_most() {
+        let records = approaches_set(8);
+        let map = fit_map(&records, 0.0, vec!["synthetic".into()], "now".into());
+        let (choice, tried) = choose_rule(&map, &records.decisions);
+        let c = choice.expect("a rule");
+        assert!(c.meets_limits, "{c:?}");
+        let fr = c.score.false_grasp_rate.expect("grasps");
+        assert!(fr <= MAX_FALSE_GRASP_RATE && c.score.first_grasp_failures == 0, "{c:?}");
+        // no rule that meets the limits recalls more
+        for s in tried.iter().filter(|s| meets_limits(s)) {
+            assert!(s.recall.unwrap_or(0.0) <= c.score.recall.unwrap_or(0.0) + 1e-12);
+        }
+        // a lower threshold would grasp into the overconfident band and fail more often
+        let lower = tried
+            .iter()
+            .find(|s| {
+                s.rule.quantity == c.score.rule.quantity
+                    && s.rule.run_length == c.score.rule.run_length
+                    && (s.rule.threshold - (c.score.rule.threshold - 0.2)).abs() < 1e-9
+            })
+            .expect("the rule 0.2 lower");
+        assert!(lower.false_grasp_rate.unwrap_or(0.0) > fr);
+    }
+
+    #[test]
+    fn replay_smooths_per_approach_and_counts_runs() {
+        // two approaches: a fresh smoother each, so the second starts at its own first answer
+        let mut d = vec![rec("a", 0, 0.2, false, 2.0), rec("a", 1, 0.9, true, 1.0)];
+        d.push(rec("b", 0, 0.9, true, 1.0));
+        let raw = Calibration::raw("test");
+        let rule = GraspRule {
+            quantity: RuleQuantity::RawLower,
+            threshold: 0.5,
+            run_length: 1,
+        };
+        let out = replay(&d, &raw, &rule, 1.0);
+        let a1 = out.iter().find(|o| o.sequence == "a" && o.frame_id == 1).expect("a1");
+        let b0 = out.iter().find(|o| o.sequence == "b").expect("b0");
+        let w = 1.0 - (-0.1f64).exp();
+        assert!((a1.p_success - (0.2 + w * 0.7)).abs() < 1e-12, "{}", a1.p_success);
+        assert_eq!(b0.p_success, 0.9);
+    }
+
+    #[test]
+    fn jumps_and_records_of_other_settings() {
+        let j = JumpStats::of(vec![0.1, 0.35, 0.0, 0.3]);
+        assert_eq!((j.pairs, j.at_least_max_jump, j.max), (4, 2, 0.35));
+        let dir = tempfile::tempdir().expect("tmp");
+        let write = |name: &str, settings: serde_json::Value| {
+            let mut r = approaches_set(1);
+            r.settings = settings;
+            let p = dir.path().join(name);
+            std::fs::write(&p, serde_json::to_string(&r).expect("json")).expect("write");
+            p
+        };
+        let a = write("a.json", serde_json::json!({"grid_step_deg": 10}));
+        let b = write("b.json", serde_json::json!({"grid_step_deg": 10, "n_samples": 500}));
+        let c = write("c.json", serde_json::json!({"grid_step_deg": 5}));
+        let ab = load_records(&[a.clone(), b]).expect("same settings");
+        assert_eq!(ab.decisions.len(), 120);
+        assert!(load_records(&[a, c]).is_err());
+    }
 }

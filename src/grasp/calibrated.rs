@@ -4,9 +4,10 @@
 
 use sha2::{Digest, Sha256};
 
-/// Hash of a canonical serialisation of `settings`: JSON with the keys of every object sorted
-/// and no whitespace, so that the same settings always give the same hash whatever the order
-/// their fields were written in.
+/// Hash (SHA-256, hex) of a canonical serialisation of `settings`: JSON with the keys of every
+/// object sorted, no whitespace and floats to 12 significant digits, so that the same settings
+/// give the same hash whatever the order their fields were written in and after a round trip
+/// through a JSON file.
 pub fn settings_hash(settings: &serde_json::Value) -> String {
     fn canonical(v: &serde_json::Value, out: &mut String) {
         match v {
@@ -33,6 +34,12 @@ pub fn settings_hash(settings: &serde_json::Value) -> String {
                     canonical(x, out);
                 }
                 out.push(']');
+            }
+            // floats to 12 significant digits: serde_json's parser may read a float written
+            // by itself one unit in the last place off, and f32 settings widened to f64 carry
+            // digits no setting means
+            serde_json::Value::Number(n) if n.is_f64() => {
+                out.push_str(&format!("{:.11e}", n.as_f64().unwrap_or(f64::NAN)));
             }
             other => out.push_str(&other.to_string()),
         }
@@ -584,6 +591,14 @@ mod tests {
         let c = serde_json::json!({"tracker": {"sigma": 0.1, "n": 51}, "grid": 10});
         assert_ne!(settings_hash(&a), settings_hash(&c));
         assert_eq!(settings_hash(&a).len(), 64);
+        // an f32 setting widened to f64, and the same read back from text one unit off
+        let wide = serde_json::json!({"sigma": f64::from(0.015f32)});
+        let read = serde_json::json!({"sigma": 0.014999999664723871});
+        assert_eq!(settings_hash(&wide), settings_hash(&read));
+        assert_ne!(
+            settings_hash(&wide),
+            settings_hash(&serde_json::json!({"sigma": 0.016}))
+        );
     }
 
     #[test]

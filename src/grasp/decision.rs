@@ -1,5 +1,6 @@
 //! The grasp-or-observe decision: the per-sample tests, the Wilson interval on the effective
-//! sample size, and the reasons (which test fails, which direction of uncertainty drives it).
+//! sample size, the calibrated probability (`calibrated.rs`), and the reasons (which test
+//! fails, which direction of uncertainty drives it).
 
 use super::calibrated::{Calibration, CalibrationStatus, GraspRule};
 use super::candidates::{Grasp, generate_candidates};
@@ -42,7 +43,9 @@ pub const DEPENDENCE_BINS: usize = 8;
 pub struct DecisionQuery {
     /// How many of the given samples to use (0 = all).
     pub n_samples: usize,
-    /// Grasp only when the lower bound of the 95% interval on p_success reaches this.
+    /// The threshold of the rule ([`Calibration::rule`]): without a map, grasp only when the
+    /// lower bound of the raw rate's 95 % Wilson interval reaches it; with one, the map's rule
+    /// (the calibrated probability, or its lower bound, against this threshold).
     pub threshold: f64,
     /// The grasp to check; `None`: generate candidates and take the best.
     pub grasp: Option<Grasp>,

@@ -31,7 +31,24 @@
 //! // d.decision, d.p_success, d.ci95, d.reasons[i].{test, failure_share, drivers, message}
 //! let ok = success_on_pose(&object, &gripper, &d.reference_from_gripper, &truth, Some(&plane))?;
 //! let view = suggest_view(&d, &views);                   // which listed view to take next
+//!
+//! // calibrated: the shipped map, checked against the running settings' hash
+//! // (eval::calibration::calibration_settings_hash); raw with a warning when stale
+//! let calibration = Calibration::shipped(&settings_hash);
+//! let query = DecisionQuery { threshold: calibration.rule().threshold, ..query };
+//! let d = decide_calibrated(&object, &gripper, &estimate, &samples, &query, &calibration)?;
+//! // d.p_success (calibrated), d.p_success_raw, d.ci95, d.ci95_raw, d.calibration, d.rule
+//! let mut smoother = calibration.smoother();             // one per track, kept between steps
+//! let a = smoother.update(step_stamp_ns, d.p_success_raw, d.ci95_raw, &calibration, &calibration.rule());
+//! // a.p_success, a.ci95 (smoothed and calibrated), a.grasp (the rule over a.run answers)
 //! ```
+//!
+//! The rule (`calibrated.rs`): the raw rate is smoothed over the last answers about the track
+//! (time constant of the map), put through a monotone map fitted on generated sequences
+//! (isotonic regression of the outcome on the true pose), and `grasp` is answered when the
+//! calibrated probability (or its lower bound) clears the rule's threshold in a run of answers.
+//! The map, its time constant and its rule are chosen by `pregrasp calibrate` (README, "The
+//! grasp rule").
 //!
 //! Timing (`cargo bench --bench grasp`, one rayon thread, 1,000 samples, a fixed top grasp):
 //! CPU time per decision 10.6 ms for the 4,539-triangle YCB can (convex hull, hill-climbing
@@ -43,7 +60,8 @@
 //! Files: `gripper.rs` (the gripper model and its JSON), `object.rs` (solid shapes, cached per
 //! mesh content hash), `hull.rs` (a convex hull with a hill-climbing support map),
 //! `candidates.rs` (grasps and their generation), `decision.rs` (the per-sample tests, the
-//! decision and its reasons), `calibration.rs` (predicted vs observed), `view.rs`
+//! decision and its reasons), `calibrated.rs` (the calibration map, its settings hash, the
+//! rule and the per-track smoother), `calibration.rs` (predicted vs observed), `view.rs`
 //! (next-best-view suggestion), `convert.rs` (nalgebra <-> parry).
 
 pub mod calibrated;
