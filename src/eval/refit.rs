@@ -190,7 +190,12 @@ pub struct RuleChoice {
 fn meets_limits(s: &RuleScore) -> bool {
     s.n_grasp > 0
         && s.false_grasp_rate.is_some_and(|f| f <= MAX_FALSE_GRASP_RATE)
-        && s.first_grasp_failures <= MAX_FIRST_GRASP_FAILURES
+        && within_first_grasp_limit(s.first_grasp_failures)
+}
+
+/// `failures <= MAX_FIRST_GRASP_FAILURES` (a function: the limit may be 0).
+fn within_first_grasp_limit(failures: usize) -> bool {
+    failures.saturating_sub(MAX_FIRST_GRASP_FAILURES) == 0
 }
 
 /// Every rule tried on `decisions` with `map`, and the one chosen: among the rules that
@@ -683,7 +688,10 @@ mod tests {
         let c = choice.expect("a rule");
         assert!(c.meets_limits, "{c:?}");
         let fr = c.score.false_grasp_rate.expect("grasps");
-        assert!(fr <= MAX_FALSE_GRASP_RATE && c.score.first_grasp_failures == 0, "{c:?}");
+        assert!(
+            fr <= MAX_FALSE_GRASP_RATE && within_first_grasp_limit(c.score.first_grasp_failures),
+            "{c:?}"
+        );
         // no rule that meets the limits recalls more
         for s in tried.iter().filter(|s| meets_limits(s)) {
             assert!(s.recall.unwrap_or(0.0) <= c.score.recall.unwrap_or(0.0) + 1e-12);

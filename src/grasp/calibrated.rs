@@ -304,18 +304,17 @@ pub fn fit_isotonic(points: &[(f64, bool)]) -> Vec<IsotonicBlock> {
         stack.push(cur);
     }
     // small blocks join the neighbour whose rate is closer (the last one its left neighbour)
-    loop {
+    while stack.len() >= 2 {
         let Some(i) = stack.iter().position(|b| b.n < MIN_BLOCK_COUNT) else {
             break;
         };
-        if stack.len() < 2 {
-            break;
-        }
+        let left_closer = |i: usize| {
+            i + 1 == stack.len()
+                || (rate(&stack[i]) - rate(&stack[i - 1])).abs() <= (rate(&stack[i + 1]) - rate(&stack[i])).abs()
+        };
         let j = if i == 0 {
             1
-        } else if i + 1 == stack.len() {
-            i - 1
-        } else if (rate(&stack[i]) - rate(&stack[i - 1])).abs() <= (rate(&stack[i + 1]) - rate(&stack[i])).abs() {
+        } else if left_closer(i) {
             i - 1
         } else {
             i + 1
@@ -733,7 +732,7 @@ mod tests {
     /// The raw rates of one unchanged scene as the filter gives them step after step
     /// (issue 20: between 0.62 and 0.95 from one second to the next).
     fn alternating(i: usize) -> f64 {
-        if i % 2 == 0 { 0.62 } else { 0.95 }
+        if i.is_multiple_of(2) { 0.62 } else { 0.95 }
     }
 
     #[test]
