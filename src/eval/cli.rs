@@ -235,6 +235,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             d.frames
         );
     }
+    if let Some(dc) = &cfg.decide {
+        match dc.calibration.map() {
+            Some(m) => println!(
+                "calibrated: map for settings {} (smoothing {} s, rule {:?} >= {} in {} answers)",
+                m.settings_hash, m.smoothing_time_constant_s, m.rule.quantity, dc.threshold, m.rule.run_length
+            ),
+            None => println!("not calibrated: raw rate, Wilson lower bound >= {}", dc.threshold),
+        }
+    }
     println!("wrote {}", args.out.join("results.json").display());
     Ok(())
 }
