@@ -500,3 +500,36 @@ fn a_calibrated_answer_carries_the_raw_rate_beside_the_mapped_one() {
     assert_eq!(s.p_success, s.p_success_raw);
     assert!(s.calibration.warning.unwrap().contains("changed tracker"));
 }
+
+#[test]
+fn a_run_rule_grasps_only_through_the_tracks_smoother() {
+    use pregrasp::grasp::{Calibration, decide_calibrated};
+    let gripper = Gripper::default_parallel_jaw();
+    let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
+    let est = standing(&can);
+    let samples = gaussian_samples(&est, [0.001; 3], [0.005; 3], 1000, 3);
+    let mut map = test_map("running");
+    map.rule.run_length = 2;
+    map.smoothing_time_constant_s = 1.0;
+    let cal = Calibration::load(&serde_json::to_string(&map).unwrap(), "running");
+    let mut q = query(Some(top_grasp(&can, 0.03)));
+    q.threshold = cal.rule().threshold;
+    let one = decide_calibrated(&can, &gripper, &est, &samples, &q, &cal).unwrap();
+    // one answer clears 0.95 but is not a run of two
+    assert!(one.p_success >= 0.95, "{}", one.p_success);
+    assert_eq!(one.decision, Verdict::Observe);
+    assert!(one.smoothing.is_none());
+    let mut smoother = cal.smoother();
+    let mut first = one.clone();
+    smoother.apply(0, &mut first, &cal);
+    assert_eq!(first.decision, Verdict::Observe);
+    let s = first.smoothing.expect("smoothed");
+    assert_eq!((s.run, s.time_constant_s), (1, 1.0));
+    assert_eq!(s.p_success_unsmoothed, one.p_success);
+    // the same question at the next step completes the run; the raw rate stays the answer's own
+    let mut second = one.clone();
+    smoother.apply(100_000_000, &mut second, &cal);
+    assert_eq!(second.decision, Verdict::Grasp);
+    assert_eq!(second.smoothing.expect("smoothed").run, 2);
+    assert_eq!(second.p_success_raw, one.p_success_raw);
+}

@@ -454,6 +454,18 @@ struct Smoothed {
     run: u32,
 }
 
+/// How a [`super::Decision`] was smoothed.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SmoothingStatus {
+    pub time_constant_s: f64,
+    /// Successive answers (this one included) that cleared the rule's threshold.
+    pub run: u32,
+    /// The smoothed raw rate the map was applied to.
+    pub p_success_raw_smoothed: f64,
+    /// This answer's own calibrated probability, before smoothing.
+    pub p_success_unsmoothed: f64,
+}
+
 /// A smoothed answer: the raw rate averaged over recent answers, through the map.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct SmoothedAnswer {
@@ -491,6 +503,32 @@ impl AnswerSmoother {
     pub fn reset(&mut self) {
         self.before = None;
         self.latest = None;
+    }
+
+    /// Smooths a decision in place: `p_success`, `ci95` and `decision` become the smoothed,
+    /// calibrated ones by the decision's rule (the raw rate and its interval stay this
+    /// answer's own); `smoothing` says how. `stamp_ns` is the tracker step's stamp.
+    pub fn apply(&mut self, stamp_ns: i64, decision: &mut super::Decision, calibration: &Calibration) {
+        let a = self.update(
+            stamp_ns,
+            decision.p_success_raw,
+            decision.ci95_raw,
+            calibration,
+            &decision.rule,
+        );
+        decision.smoothing = Some(SmoothingStatus {
+            time_constant_s: self.time_constant_s,
+            run: a.run,
+            p_success_raw_smoothed: a.p_success_raw,
+            p_success_unsmoothed: decision.p_success,
+        });
+        decision.p_success = a.p_success;
+        decision.ci95 = a.ci95;
+        decision.decision = if a.grasp {
+            super::Verdict::Grasp
+        } else {
+            super::Verdict::Observe
+        };
     }
 
     /// Adds one raw answer taken at `stamp_ns` (the tracker step's stamp) and returns the

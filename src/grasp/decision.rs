@@ -2,7 +2,7 @@
 //! sample size, the calibrated probability (`calibrated.rs`), and the reasons (which test
 //! fails, which direction of uncertainty drives it).
 
-use super::calibrated::{Calibration, CalibrationStatus, GraspRule};
+use super::calibrated::{Calibration, CalibrationStatus, GraspRule, SmoothingStatus};
 use super::candidates::{Grasp, generate_candidates};
 use super::{GraspError, GraspObject, Gripper, SupportPlane, convert};
 use crate::geometry::{Pose, PoseSamples};
@@ -150,8 +150,9 @@ pub struct RankedGrasp {
 /// The answer.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Decision {
-    /// `grasp` when this answer clears `rule` (a rule with a run of answers is counted by
-    /// the per-track [`super::calibrated::AnswerSmoother`]).
+    /// `grasp` when the answer clears `rule`. A rule over a run of answers needs the track's
+    /// [`AnswerSmoother`](super::calibrated::AnswerSmoother) to count the run; a single
+    /// answer never meets it.
     pub decision: Verdict,
     /// The probability that the planned grasp succeeds: the calibrated map of
     /// `p_success_raw` when `calibration.calibrated`, else the raw rate itself.
@@ -171,6 +172,11 @@ pub struct Decision {
     /// The rule that gave `decision` (its threshold is `threshold`).
     #[serde(default)]
     pub rule: GraspRule,
+    /// Set when the answer went through the track's
+    /// [`AnswerSmoother`](super::calibrated::AnswerSmoother): `p_success`, `ci95`
+    /// and `decision` are then the smoothed ones.
+    #[serde(default)]
+    pub smoothing: Option<SmoothingStatus>,
     pub n_samples: usize,
     pub effective_sample_size: f64,
     pub threshold: f64,
@@ -649,7 +655,7 @@ pub fn decide_calibrated(
     let mut uncertainty = axis_drivers(&failed, &offsets, frames);
     uncertainty.sort_by(|a, b| b.failure_dependence.total_cmp(&a.failure_dependence));
     Ok(Decision {
-        decision: if rule.admits(p, ci95, ci95_raw) {
+        decision: if rule.admits(p, ci95, ci95_raw) && rule.run_length <= 1 {
             Verdict::Grasp
         } else {
             Verdict::Observe
@@ -660,6 +666,7 @@ pub fn decide_calibrated(
         ci95_raw,
         calibration: status,
         rule,
+        smoothing: None,
         n_samples: n,
         effective_sample_size: ess,
         threshold: query.threshold,

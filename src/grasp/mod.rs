@@ -39,8 +39,9 @@
 //! let d = decide_calibrated(&object, &gripper, &estimate, &samples, &query, &calibration)?;
 //! // d.p_success (calibrated), d.p_success_raw, d.ci95, d.ci95_raw, d.calibration, d.rule
 //! let mut smoother = calibration.smoother();             // one per track, kept between steps
-//! let a = smoother.update(step_stamp_ns, d.p_success_raw, d.ci95_raw, &calibration, &calibration.rule());
-//! // a.p_success, a.ci95 (smoothed and calibrated), a.grasp (the rule over a.run answers)
+//! let mut d = d;
+//! smoother.apply(step_stamp_ns, &mut d, &calibration);  // once per tracker step and question
+//! // d.p_success, d.ci95, d.decision now smoothed; d.smoothing.{run, p_success_unsmoothed}
 //! ```
 //!
 //! The rule (`calibrated.rs`): the raw rate is smoothed over the last answers about the track
@@ -76,6 +77,7 @@ pub mod view;
 
 pub use calibrated::{
     AnswerSmoother, Calibration, CalibrationMap, CalibrationStatus, GraspRule, RuleQuantity, SmoothedAnswer,
+    SmoothingStatus,
 };
 pub use calibration::{CalibrationRecord, CalibrationReport, ReliabilityBin, calibration_report};
 pub use candidates::{Grasp, generate_candidates};
