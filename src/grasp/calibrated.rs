@@ -1,8 +1,14 @@
 //! A calibrated `p_success`: a monotone map from the raw sampled success rate to the share of
 //! such answers that succeeded on the true pose, fitted on generated sequences, stored with the
-//! hash of the settings it was fitted for, and refused for any other settings.
+//! hash of the settings it was fitted for, and refused for any other settings; the per-track
+//! smoother whose smoothed raw rate the map reads; and the rule that turns the calibrated
+//! probability into `grasp` (chosen by `pregrasp calibrate`, `crate::eval::refit`).
 
+use super::GraspError;
+use super::decision::{DEFAULT_THRESHOLD, wilson_interval};
+use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
+use std::sync::Arc;
 
 /// Hash (SHA-256, hex) of a canonical serialisation of `settings`: JSON with the keys of every
 /// object sorted, no whitespace and floats to 12 significant digits, so that the same settings
@@ -49,11 +55,6 @@ pub fn settings_hash(settings: &serde_json::Value) -> String {
     let digest = Sha256::digest(s.as_bytes());
     digest.iter().map(|b| format!("{b:02x}")).collect()
 }
-
-use super::GraspError;
-use super::decision::{DEFAULT_THRESHOLD, wilson_interval};
-use serde::{Deserialize, Serialize};
-use std::sync::Arc;
 
 /// Version of the map's JSON layout.
 pub const MAP_VERSION: u32 = 1;
