@@ -19,6 +19,9 @@ enum Command {
     Generate(pregrasp::generate::cli::Args),
     /// Track every object of a data set and report the paper's metrics.
     Eval(pregrasp::eval::cli::Args),
+    /// Fit the calibrated p_success and choose the grasp rule on eval's decisions.json (or
+    /// report a map on other runs').
+    Calibrate(pregrasp::eval::refit::Args),
     /// Run the HTTP service (with --demo: the built-in demo scene, dashboard included).
     Serve(pregrasp::api::cli::ServeArgs),
     /// Stream a sequence into a running server as a robot would.
@@ -33,6 +36,7 @@ fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Generate(a) => pregrasp::generate::cli::run(a),
         Command::Eval(a) => pregrasp::eval::cli::run(a),
+        Command::Calibrate(a) => pregrasp::eval::refit::run(a),
         Command::Serve(a) => pregrasp::api::cli::serve(a),
         Command::Replay(a) => pregrasp::tools::replay::cli(a),
     }

@@ -106,6 +106,20 @@ fn eval_writes_results_and_multi_view_beats_a_blind_robot_camera() {
     assert!(json["objects"].is_array() && json["mean"].is_object() && json["others"].is_array());
     assert!(json["decision"]["reliability"].is_array(), "{}", json["decision"]);
     assert!(out_multi.join("table.md").is_file());
+    // every decision with its raw answer and the distribution's measures, for `calibrate`
+    let records: pregrasp::eval::calibration::DecisionRecords =
+        serde_json::from_str(&std::fs::read_to_string(out_multi.join("decisions.json")).expect("decisions.json"))
+            .expect("decision records");
+    assert_eq!(records.settings_hash.len(), 64);
+    assert_eq!(
+        records.decisions.len(),
+        json["decision"]["frames"].as_u64().expect("frames") as usize
+    );
+    assert!(records.decisions.iter().all(|d| {
+        d.features
+            .as_ref()
+            .is_some_and(|f| (0.0..=1.0).contains(&f.p_raw) && f.effective_sample_size > 0.0)
+    }));
     assert!(out_multi.join("plots/seq0.svg").is_file());
     assert_eq!(multi.objects.len(), 1);
     let m = &multi.objects[0];

@@ -419,3 +419,117 @@ fn a_flat_object_gets_its_top_grasp_lifted_clear_of_the_table() {
     assert!(top.grasp.depth_m > 0.0 && top.grasp.depth_m < 0.015);
     assert!(top.p_success > 0.95, "{}", top.p_success);
 }
+
+/// A map that says a raw rate of 0.9 and above succeeds 97 % of the time, below that 40 %.
+fn test_map(hash: &str) -> pregrasp::grasp::CalibrationMap {
+    use pregrasp::grasp::calibrated::{IsotonicBlock, MAP_VERSION};
+    use pregrasp::grasp::{GraspRule, RuleQuantity};
+    pregrasp::grasp::CalibrationMap {
+        version: MAP_VERSION,
+        settings_hash: hash.into(),
+        settings: serde_json::json!({}),
+        fitted_at: "2026-12-02T00:00:00Z".into(),
+        fitted_on: vec!["hand-made".into()],
+        n_decisions: 1000,
+        n_successes: 685,
+        n_approaches: 10,
+        blocks: vec![
+            IsotonicBlock {
+                raw_lo: 0.0,
+                raw_hi: 0.89,
+                raw_mean: 0.5,
+                count: 500,
+                successes: 200,
+            },
+            IsotonicBlock {
+                raw_lo: 0.9,
+                raw_hi: 1.0,
+                raw_mean: 0.95,
+                count: 500,
+                successes: 485,
+            },
+        ],
+        rule: GraspRule {
+            quantity: RuleQuantity::Calibrated,
+            threshold: 0.95,
+            run_length: 1,
+        },
+        smoothing_time_constant_s: 0.0,
+    }
+}
+
+#[test]
+fn a_calibrated_answer_carries_the_raw_rate_beside_the_mapped_one() {
+    use pregrasp::grasp::{Calibration, RuleQuantity, decide_calibrated};
+    let gripper = Gripper::default_parallel_jaw();
+    let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
+    let est = standing(&can);
+    // few effective samples: the raw rule (Wilson lower bound >= 0.9) observes
+    let mut samples = gaussian_samples(&est, [0.001; 3], [0.005; 3], 1000, 2);
+    samples.effective_sample_size = 20.0;
+    let grasp = Some(top_grasp(&can, 0.03));
+    let raw = decide(&can, &gripper, &est, &samples, &query(grasp.clone())).unwrap();
+    assert_eq!(raw.decision, Verdict::Observe);
+    assert!(!raw.calibration.calibrated && raw.calibration.warning.is_some());
+    assert_eq!(raw.p_success, raw.p_success_raw);
+    assert_eq!(raw.ci95, raw.ci95_raw);
+
+    let text = serde_json::to_string(&test_map("running")).unwrap();
+    let cal = Calibration::load(&text, "running");
+    let mut q = query(grasp.clone());
+    q.threshold = cal.rule().threshold;
+    let d = decide_calibrated(&can, &gripper, &est, &samples, &q, &cal).unwrap();
+    assert_eq!(d.p_success_raw, raw.p_success_raw);
+    assert_eq!(d.ci95_raw, raw.ci95_raw);
+    let m = cal.map().unwrap();
+    assert!((d.p_success - m.apply(d.p_success_raw)).abs() < 1e-12);
+    assert!(d.ci95[0] <= d.p_success && d.p_success <= d.ci95[1]);
+    assert!(d.calibration.calibrated && d.calibration.settings_hash.as_deref() == Some("running"));
+    assert_eq!(d.rule.quantity, RuleQuantity::Calibrated);
+    // the map's 0.97 clears its rule's 0.95 where the raw Wilson bound did not clear 0.9
+    assert_eq!(d.decision, Verdict::Grasp, "{} {:?}", d.p_success, d.ci95);
+    let json = serde_json::to_value(&d).unwrap();
+    for k in ["p_success", "p_success_raw", "ci95", "ci95_raw", "calibration", "rule"] {
+        assert!(json.get(k).is_some(), "{k}");
+    }
+
+    // a map fitted for other settings: the raw answer and the raw rule, with the warning
+    let stale = Calibration::load(&text, "changed tracker");
+    let s = decide_calibrated(&can, &gripper, &est, &samples, &query(grasp), &stale).unwrap();
+    assert_eq!(s.decision, Verdict::Observe);
+    assert_eq!(s.p_success, s.p_success_raw);
+    assert!(s.calibration.warning.unwrap().contains("changed tracker"));
+}
+
+#[test]
+fn a_run_rule_grasps_only_through_the_tracks_smoother() {
+    use pregrasp::grasp::{Calibration, decide_calibrated};
+    let gripper = Gripper::default_parallel_jaw();
+    let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
+    let est = standing(&can);
+    let samples = gaussian_samples(&est, [0.001; 3], [0.005; 3], 1000, 3);
+    let mut map = test_map("running");
+    map.rule.run_length = 2;
+    map.smoothing_time_constant_s = 1.0;
+    let cal = Calibration::load(&serde_json::to_string(&map).unwrap(), "running");
+    let mut q = query(Some(top_grasp(&can, 0.03)));
+    q.threshold = cal.rule().threshold;
+    let one = decide_calibrated(&can, &gripper, &est, &samples, &q, &cal).unwrap();
+    // one answer clears 0.95 but is not a run of two
+    assert!(one.p_success >= 0.95, "{}", one.p_success);
+    assert_eq!(one.decision, Verdict::Observe);
+    assert!(one.smoothing.is_none());
+    let mut smoother = cal.smoother();
+    let mut first = one.clone();
+    smoother.apply(0, &mut first, &cal);
+    assert_eq!(first.decision, Verdict::Observe);
+    let s = first.smoothing.expect("smoothed");
+    assert_eq!((s.run, s.time_constant_s), (1, 1.0));
+    assert_eq!(s.p_success_unsmoothed, one.p_success);
+    // the same question at the next step completes the run; the raw rate stays the answer's own
+    let mut second = one.clone();
+    smoother.apply(100_000_000, &mut second, &cal);
+    assert_eq!(second.decision, Verdict::Grasp);
+    assert_eq!(second.smoothing.expect("smoothed").run, 2);
+    assert_eq!(second.p_success_raw, one.p_success_raw);
+}

@@ -246,6 +246,9 @@ impl From<ServiceError> for ApiError {
                     GraspError::NoSamples => Self::NotReady(detail),
                     // a geometry query parry3d cannot answer, a file on the server: our fault
                     GraspError::Unsupported(_) | GraspError::GripperFile { .. } => Self::Internal(detail),
+                    // the server's calibration map is broken or stale: our fault (the service
+                    // falls back to the raw rate before it gets here)
+                    GraspError::Calibration(_) | GraspError::StaleCalibration { .. } => Self::Internal(detail),
                 }
             }
         }

@@ -6,7 +6,10 @@
 //! whether it fails on the truth, with a Wilson upper bound on the per-approach failure rate.
 
 use super::report::{DecisionBlock, FirstGrasp, ReliabilityBin};
+use crate::grasp::Gripper;
 use crate::grasp::calibration::{CalibrationRecord, calibration_report, wilson_upper_95};
+use crate::tracker::{CodebookConfig, TrackerConfig};
+use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
 /// Recall counts the frames where the robot camera is at most this far from the object (m):
@@ -14,11 +17,15 @@ use std::collections::BTreeMap;
 pub const RECALL_MAX_DISTANCE_M: f64 = 1.2;
 
 /// One decision at one frame and its outcome on the true pose.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DecisionOutcome {
     pub sequence: String,
     pub object: String,
     pub frame_id: u32,
+    /// The reference camera's stamp of the step (ns); 0 in records of older runs.
+    #[serde(default)]
+    pub stamp_ns: i64,
+    /// The answer's `p_success` (calibrated when the run had a map for its settings).
     pub p_success: f64,
     /// The decision said `grasp`.
     pub grasp: bool,
@@ -27,6 +34,97 @@ pub struct DecisionOutcome {
     /// Distance from the robot camera (the reference camera in a rig without one) to the
     /// object's true position (m); `None` where the truth does not say.
     pub camera_distance_m: Option<f64>,
+    /// What the distribution alone says at that frame (no truth): the inputs of a
+    /// calibration fit. `None` in records of older runs.
+    #[serde(default)]
+    pub features: Option<DecisionFeatures>,
+}
+
+/// The raw answer and the distribution's own measures at one decision (nothing from the
+/// truth), kept per frame so that a calibration map and a rule can be refitted without
+/// running the tracker again.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DecisionFeatures {
+    /// Share of the samples on which the chosen grasp succeeds.
+    pub p_raw: f64,
+    /// Effective sample size of the samples (the tracker's particle weights).
+    pub effective_sample_size: f64,
+    /// The same decision on a second, independent draw of samples from the same tracker
+    /// state: the spread that sampling and the choice of candidate alone cause.
+    pub p_raw_repeat: Option<f64>,
+    /// The second draw chose the same grasp candidate.
+    pub repeat_same_grasp: Option<bool>,
+    /// Label of the chosen candidate (a switch between frames moves p on its own).
+    pub grasp_label: String,
+    /// Mass of the largest rotation mode.
+    pub top_mode_mass: Option<f64>,
+    /// Entropy (nats) of the rotation histogram.
+    pub rotation_entropy: f64,
+    /// Cameras that gave evidence in the step.
+    pub views_seeing: usize,
+    /// Distance from the reference camera to the *estimated* position (m).
+    pub estimated_distance_m: f64,
+    /// RMS distance of the particles from their mean (m).
+    pub translation_std_m: f64,
+}
+
+/// The settings a calibration map is fitted for: the tracker's (its seed and the service's cap
+/// on tracks per object left out: neither changes how a track's distribution behaves), the
+/// codebooks', the rotation grid and the gripper. Their hash
+/// ([`crate::grasp::calibrated::settings_hash`]) is stored with the map. The number of samples
+/// per decision is not part of them: the raw rate estimates the same share whatever the number.
+pub fn calibration_settings(
+    tracker: &TrackerConfig,
+    codebook: &CodebookConfig,
+    grid_step_deg: u32,
+    gripper: &Gripper,
+) -> serde_json::Value {
+    let mut tracker = tracker.clone();
+    tracker.seed = 0;
+    tracker.max_tracks_per_object = 0;
+    let mut codebook = codebook.clone();
+    codebook.seed = 0;
+    serde_json::json!({
+        "tracker": tracker,
+        "codebook": codebook,
+        "grid_step_deg": grid_step_deg,
+        "gripper": gripper,
+    })
+}
+
+/// The hash of [`calibration_settings`]: what a running tracker compares with a map's.
+pub fn calibration_settings_hash(
+    tracker: &TrackerConfig,
+    codebook: &CodebookConfig,
+    grid_step_deg: u32,
+    gripper: &Gripper,
+) -> String {
+    crate::grasp::calibrated::settings_hash(&calibration_settings(tracker, codebook, grid_step_deg, gripper))
+}
+
+/// The settings hash of `serve` as it starts by default (the default tracker, the coarse
+/// codebook on the 10-degree grid, the built-in gripper): the shipped map must be fitted for it.
+pub fn service_settings_hash() -> String {
+    calibration_settings_hash(
+        &TrackerConfig::default(),
+        &CodebookConfig::coarse(),
+        SERVICE_GRID_STEP_DEG,
+        &Gripper::default_parallel_jaw(),
+    )
+}
+
+/// The grid `serve` tracks on by default (its first codebook's, `--codebook-step-deg 10`).
+pub const SERVICE_GRID_STEP_DEG: u32 = 10;
+
+/// `decisions.json` of an `eval --decide` run: every decision with its raw answer, the
+/// distribution's measures and the outcome on the truth, and the settings they came from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DecisionRecords {
+    pub settings_hash: String,
+    pub settings: serde_json::Value,
+    /// The data set evaluated (as given on the command line).
+    pub data: String,
+    pub decisions: Vec<DecisionOutcome>,
 }
 
 fn records<'a>(outcomes: impl Iterator<Item = &'a DecisionOutcome>) -> Vec<CalibrationRecord> {
@@ -154,15 +252,53 @@ mod tests {
             sequence: seq.into(),
             object: obj.into(),
             frame_id: frame,
+            stamp_ns: i64::from(frame) * 100_000_000,
             p_success: p,
             grasp,
             success,
             camera_distance_m: Some(d),
+            features: None,
         }
     }
 
     fn simple(p: f64, grasp: bool, success: bool) -> DecisionOutcome {
         out("s", "o", 0, p, grasp, success, 1.0)
+    }
+
+    #[test]
+    fn the_shipped_map_is_fitted_for_the_running_settings() {
+        // Fails when a tracker, codebook or gripper default changed since the map was fitted:
+        // refit it with `pregrasp calibrate` (README, "The grasp rule").
+        let map = crate::grasp::CalibrationMap::from_json(crate::grasp::calibrated::SHIPPED_MAP_JSON)
+            .expect("the shipped map parses");
+        let running = service_settings_hash();
+        assert_eq!(
+            map.settings_hash, running,
+            "the shipped calibration map is stale: refit it (scripts/calibrate.sh)"
+        );
+        assert!(crate::grasp::Calibration::shipped(&running).map().is_some());
+    }
+
+    #[test]
+    fn settings_hash_sees_the_tracker_codebook_grid_and_gripper_but_not_seeds() {
+        let t = TrackerConfig::default();
+        let c = CodebookConfig::coarse();
+        let g = Gripper::default_parallel_jaw();
+        let h = calibration_settings_hash(&t, &c, 10, &g);
+        let mut t2 = t.clone();
+        t2.seed += 1;
+        t2.max_tracks_per_object = 1;
+        let mut c2 = c.clone();
+        c2.seed += 1;
+        assert_eq!(h, calibration_settings_hash(&t2, &c2, 10, &g));
+        let mut t3 = t.clone();
+        t3.brownian_sigma_m *= 2.0;
+        assert_ne!(h, calibration_settings_hash(&t3, &c, 10, &g));
+        assert_ne!(h, calibration_settings_hash(&t, &CodebookConfig::default(), 10, &g));
+        assert_ne!(h, calibration_settings_hash(&t, &c, 5, &g));
+        let mut g2 = g.clone();
+        g2.max_opening_m += 0.01;
+        assert_ne!(h, calibration_settings_hash(&t, &c, 10, &g2));
     }
 
     #[test]

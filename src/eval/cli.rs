@@ -1,8 +1,8 @@
 //! `pregrasp eval`: the command line of the evaluation.
 
 use super::report::Mode;
-use super::run::{DecideConfig, EvalConfig, run_all};
-use crate::grasp::Gripper;
+use super::run::{DecideConfig, EvalConfig, run_all, tracker_config};
+use crate::grasp::{Calibration, Gripper};
 use crate::tracker::{CodebookConfig, ColorFeatures, TrackerConfig};
 use std::path::PathBuf;
 
@@ -36,9 +36,18 @@ pub struct Args {
     /// Pose samples per decision.
     #[arg(long, default_value_t = 1000)]
     pub samples: usize,
-    /// Decision threshold on the lower bound of p_success.
-    #[arg(long, default_value_t = 0.9)]
-    pub threshold: f64,
+    /// Threshold of the grasp rule (default: the calibration map's; 0.9 on the raw rate's
+    /// Wilson lower bound without a map).
+    #[arg(long)]
+    pub threshold: Option<f64>,
+    /// Calibration map for --decide (default: the one shipped in the binary); a map fitted
+    /// for other settings is refused and the raw rate scored instead.
+    #[arg(long)]
+    pub calibration_map: Option<PathBuf>,
+    /// With --decide: decide a second time on an independent draw of samples at every frame
+    /// (`p_raw_repeat` in decisions.json: what sampling alone moves).
+    #[arg(long)]
+    pub repeat_draw: bool,
     /// Evaluate at most this many steps per sequence.
     #[arg(long)]
     pub max_frames: Option<usize>,
@@ -54,6 +63,11 @@ pub struct Args {
     /// An earlier run's output folder whose traces the plots show dashed (e.g. single-view).
     #[arg(long)]
     pub compare: Option<PathBuf>,
+    /// The small codebook `serve` tracks with (`CodebookConfig::coarse()`, its default with
+    /// the 10-degree grid) instead of the full one: a calibration map for the service is
+    /// fitted on runs with it.
+    #[arg(long)]
+    pub coarse_codebook: bool,
     /// Codebooks from the meshes' depth alone (no colour): for meshes whose colours do not
     /// match the cameras' (a scan under other light, an untextured CAD model).
     #[arg(long)]
@@ -67,11 +81,13 @@ pub struct Args {
     #[arg(long, default_value_t = CodebookConfig::default().seed)]
     pub codebook_seed: u64,
     /// Components of the code given to colour (0: one code of depth and colour together).
-    #[arg(long, default_value_t = CodebookConfig::default().color_code_dim)]
-    pub color_code_dim: usize,
+    /// (default: the codebook's, 16 for the full one)
+    #[arg(long)]
+    pub color_code_dim: Option<usize>,
     /// Weight of the colour cosine in the similarity (0..1; the depth's is one minus it).
-    #[arg(long, default_value_t = CodebookConfig::default().color_code_weight)]
-    pub color_code_weight: f32,
+    /// (default: the codebook's)
+    #[arg(long)]
+    pub color_code_weight: Option<f32>,
     /// Samples per frame for the truth's place in the distribution (highest-density regions,
     /// `eval::trust`); 0 skips those measures.
     #[arg(long, default_value_t = super::run::DEFAULT_TRUST_SAMPLES)]
@@ -121,27 +137,58 @@ impl Args {
             };
             let mut d = DecideConfig::new(gripper);
             d.n_samples = self.samples;
-            d.threshold = self.threshold;
+            d.repeat_draw = self.repeat_draw;
             Some(d)
         } else {
             None
         };
+        let mut cfg = self.config_without_calibration(decide)?;
+        let settings_hash = cfg.decide.as_ref().map(|d| {
+            super::calibration::calibration_settings_hash(
+                &tracker_config(&cfg.tracker, cfg.mode),
+                &cfg.codebook,
+                cfg.grid_step_deg,
+                &d.gripper,
+            )
+        });
+        if let (Some(d), Some(hash)) = (cfg.decide.as_mut(), settings_hash) {
+            d.calibration = match &self.calibration_map {
+                Some(p) => {
+                    let text = std::fs::read_to_string(p)
+                        .map_err(|e| anyhow::anyhow!("calibration map {}: {e}", p.display()))?;
+                    Calibration::load(&text, &hash)
+                }
+                None => Calibration::shipped(&hash),
+            };
+            d.threshold = self.threshold.unwrap_or(d.calibration.rule().threshold);
+        }
+        Ok(cfg)
+    }
+
+    fn config_without_calibration(&self, decide: Option<DecideConfig>) -> anyhow::Result<EvalConfig> {
         Ok(EvalConfig {
             mode: self.mode,
             models_dir: self.models.clone(),
             cache_dir: Some(self.cache.clone().unwrap_or_else(|| self.out.join("cache"))),
             grid_step_deg: self.grid_step_deg,
-            codebook: CodebookConfig {
-                use_color: !self.depth_only,
-                color_features: if self.rgb {
-                    ColorFeatures::Rgb
+            codebook: {
+                let base = if self.coarse_codebook {
+                    CodebookConfig::coarse()
                 } else {
-                    ColorFeatures::Chromaticity
-                },
-                seed: self.codebook_seed,
-                color_code_dim: self.color_code_dim,
-                color_code_weight: self.color_code_weight,
-                ..CodebookConfig::default()
+                    CodebookConfig::default()
+                };
+                CodebookConfig {
+                    use_color: !self.depth_only,
+                    color_features: if self.rgb {
+                        ColorFeatures::Rgb
+                    } else {
+                        ColorFeatures::Chromaticity
+                    },
+                    seed: self.codebook_seed,
+                    color_code_dim: self.color_code_dim.unwrap_or(base.color_code_dim),
+                    color_code_weight: self.color_code_weight.unwrap_or(base.color_code_weight),
+                    ..base
+                }
             },
             tracker: match &self.tracker_config {
                 Some(p) => {
@@ -187,6 +234,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             d.ece,
             d.frames
         );
+    }
+    if let Some(dc) = &cfg.decide {
+        match dc.calibration.map() {
+            Some(m) => println!(
+                "calibrated: map for settings {} (smoothing {} s, rule {:?} >= {} in {} answers)",
+                m.settings_hash, m.smoothing_time_constant_s, m.rule.quantity, dc.threshold, m.rule.run_length
+            ),
+            None => println!("not calibrated: raw rate, Wilson lower bound >= {}", dc.threshold),
+        }
     }
     println!("wrote {}", args.out.join("results.json").display());
     Ok(())

@@ -7,12 +7,14 @@
 //! Markdown table beside the paper's), `plot.rs` (SVG plots over time, the reliability
 //! diagram), `calibration.rs` (scores of the grasp decision), `trust.rs` (the truth's place
 //! in the tracked distribution: highest-density regions), `run.rs` (the runner), `cli.rs`
-//! (`pregrasp eval`). Symmetries (shape, and shape with colour) live in `crate::symmetry`.
+//! (`pregrasp eval`), `refit.rs` (`pregrasp calibrate`: the map of the calibrated `p_success`
+//! and the rule chosen by its failures). Symmetries (shape, and shape with colour) live in `crate::symmetry`.
 
 pub mod calibration;
 pub mod cli;
 pub mod metrics;
 pub mod plot;
+pub mod refit;
 pub mod report;
 pub mod run;
 pub mod trust;

@@ -14,7 +14,7 @@
 //! fed, with all particles from it.
 
 use super::EvalError;
-use super::calibration::DecisionOutcome;
+use super::calibration::{DecisionFeatures, DecisionOutcome};
 use super::metrics::{self, ModelPoints, Symmetries};
 use super::plot::{Series, sequence_svg};
 use super::report::{FrameErrors, FrameMetrics, Mode, ObjectTrace, Results, SequenceSummary, TruthPlace};
@@ -22,7 +22,7 @@ use super::trust::{GaussianMixture, RegionScore};
 use super::truth::{associate, camera_distance_m, objects_in_reference, reference_from_world};
 use crate::dataset::{Mount, Sequence};
 use crate::geometry::{Pose, RotationGrid};
-use crate::grasp::{self, DecisionQuery, GraspObject, Gripper, SupportPlane, Verdict};
+use crate::grasp::{self, Calibration, DecisionQuery, GraspObject, GraspRule, Gripper, SupportPlane, Verdict};
 use crate::mesh::Mesh;
 use crate::render::Renderer;
 use crate::tracker::{
@@ -75,6 +75,12 @@ pub struct DecideConfig {
     pub n_samples: usize,
     pub threshold: f64,
     pub seed: u64,
+    /// Also decide on a second draw from the same tracker state (`p_raw_repeat` in
+    /// `decisions.json`).
+    pub repeat_draw: bool,
+    /// The map the answers are scored through (with its smoothing and rule; the rule's
+    /// threshold is `threshold`); raw answers and the Wilson rule without one.
+    pub calibration: Calibration,
 }
 
 impl DecideConfig {
@@ -84,6 +90,8 @@ impl DecideConfig {
             n_samples: 1000,
             threshold: 0.9,
             seed: 5,
+            repeat_draw: false,
+            calibration: Calibration::raw("eval without a calibration map"),
         }
     }
 }
@@ -454,7 +462,7 @@ pub fn evaluate_sequence(
                         *track_id,
                         est,
                         truth,
-                        frame_id,
+                        (frame_id, stamp_ns),
                         &mut decide_rng,
                     )? {
                         decisions.push(o);
@@ -551,7 +559,7 @@ fn decide_once(
     track_id: u64,
     est: &crate::tracker::Estimate,
     truth: &super::truth::TrueObject,
-    frame_id: u32,
+    (frame_id, stamp_ns): (u32, i64),
     rng: &mut rand_chacha::ChaCha8Rng,
 ) -> Result<Option<DecisionOutcome>, EvalError> {
     let Some(object) = &model.grasp_object else {
@@ -577,6 +585,33 @@ fn decide_once(
         Err(grasp::GraspError::NoCandidate(_)) => return Ok(None),
         Err(e) => return Err(EvalError::Grasp(e.to_string())),
     };
+    // The same question on a second draw from the same tracker state: how far sampling and
+    // the choice of candidate alone move the answer.
+    let repeat = if dc.repeat_draw {
+        match tracker.sample_poses(track_id, dc.n_samples, rng) {
+            Some(s2) => match grasp::decide(object, &dc.gripper, &est.reference_from_object, &s2, &query) {
+                Ok(d) => Some(d),
+                Err(grasp::GraspError::NoCandidate(_)) => None,
+                Err(e) => return Err(EvalError::Grasp(e.to_string())),
+            },
+            None => None,
+        }
+    } else {
+        None
+    };
+    let track = tracker.tracks().iter().find(|t| t.id == track_id);
+    let features = DecisionFeatures {
+        p_raw: decision.p_success,
+        effective_sample_size: decision.effective_sample_size,
+        p_raw_repeat: repeat.as_ref().map(|d| d.p_success),
+        repeat_same_grasp: repeat.as_ref().map(|d| d.grasp.label == decision.grasp.label),
+        grasp_label: decision.grasp.label.clone(),
+        top_mode_mass: est.rotation_modes.iter().map(|m| m.mass).max_by(f64::total_cmp),
+        rotation_entropy: est.rotation_entropy,
+        views_seeing: track.map_or(0, |t| t.seen_by.len()),
+        estimated_distance_m: est.reference_from_object.translation.vector.norm(),
+        translation_std_m: est.translation_std_m,
+    };
     let plane_true = match (plane_world, reference_from_world(seq, frame_id)) {
         (Some(p), Some(reference_from_world)) => Some(p.transformed(&reference_from_world)),
         (Some(_), None) => return Ok(None),
@@ -594,10 +629,12 @@ fn decide_once(
         sequence: sequence_name.to_string(),
         object: truth.name.clone(),
         frame_id,
+        stamp_ns,
         p_success: decision.p_success,
         grasp: decision.decision == Verdict::Grasp,
         success,
         camera_distance_m: camera_distance_m(seq, frame_id, &truth.reference_from_object),
+        features: Some(features),
     }))
 }
 
@@ -659,6 +696,18 @@ pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>
     }
     let mut results = Results::from_traces(cfg.mode, &traces, summaries);
     if let Some(dc) = &cfg.decide {
+        // the answers as the service gives them: per approach through the map's smoother, the
+        // verdict by its rule (the raw rate and the Wilson rule without a map)
+        let rule = GraspRule {
+            threshold: dc.threshold,
+            ..dc.calibration.rule()
+        };
+        decisions = super::refit::replay(
+            &decisions,
+            &dc.calibration,
+            &rule,
+            dc.calibration.smoothing_time_constant_s(),
+        );
         results.decision = super::calibration::summarise(&decisions, dc.threshold);
         if let Some(d) = results.decision.as_mut() {
             let png = out.join("reliability.png");
@@ -713,6 +762,18 @@ pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>
     };
     write_json("results.json", &results)?;
     write_json("frames.json", &traces)?;
+    if let Some(dc) = &cfg.decide {
+        // every decision with its raw answer and the distribution's measures: the input of
+        // `pregrasp calibrate`
+        let settings = super::calibration::calibration_settings(&tc, &cfg.codebook, cfg.grid_step_deg, &dc.gripper);
+        let records = super::calibration::DecisionRecords {
+            settings_hash: crate::grasp::calibrated::settings_hash(&settings),
+            settings,
+            data: data.display().to_string(),
+            decisions,
+        };
+        write_json("decisions.json", &records)?;
+    }
     let md = out.join("table.md");
     std::fs::write(&md, results.markdown()).map_err(|e| io(&md, e))?;
     Ok(results)

@@ -1,6 +1,8 @@
 //! The grasp-or-observe decision: the per-sample tests, the Wilson interval on the effective
-//! sample size, and the reasons (which test fails, which direction of uncertainty drives it).
+//! sample size, the calibrated probability (`calibrated.rs`), and the reasons (which test
+//! fails, which direction of uncertainty drives it).
 
+use super::calibrated::{Calibration, CalibrationStatus, GraspRule, SmoothingStatus};
 use super::candidates::{Grasp, generate_candidates};
 use super::{GraspError, GraspObject, Gripper, SupportPlane, convert};
 use crate::geometry::{Pose, PoseSamples};
@@ -41,7 +43,9 @@ pub const DEPENDENCE_BINS: usize = 8;
 pub struct DecisionQuery {
     /// How many of the given samples to use (0 = all).
     pub n_samples: usize,
-    /// Grasp only when the lower bound of the 95% interval on p_success reaches this.
+    /// The threshold of the rule ([`Calibration::rule`]): without a map, grasp only when the
+    /// lower bound of the raw rate's 95 % Wilson interval reaches it; with one, the map's rule
+    /// (the calibrated probability, or its lower bound, against this threshold).
     pub threshold: f64,
     /// The grasp to check; `None`: generate candidates and take the best.
     pub grasp: Option<Grasp>,
@@ -146,9 +150,33 @@ pub struct RankedGrasp {
 /// The answer.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Decision {
+    /// `grasp` when the answer clears `rule`. A rule over a run of answers needs the track's
+    /// [`AnswerSmoother`](super::calibrated::AnswerSmoother) to count the run; a single
+    /// answer never meets it.
     pub decision: Verdict,
+    /// The probability that the planned grasp succeeds: the calibrated map of
+    /// `p_success_raw` when `calibration.calibrated`, else the raw rate itself.
     pub p_success: f64,
+    /// 95 % interval of `p_success`: calibrated, the raw interval's ends through the map
+    /// widened by the fit's own uncertainty there; raw, the Wilson interval on the ESS.
     pub ci95: [f64; 2],
+    /// The share of the samples on which the grasp succeeds.
+    #[serde(default)]
+    pub p_success_raw: f64,
+    /// 95 % Wilson interval of the raw rate over the effective sample size.
+    #[serde(default)]
+    pub ci95_raw: [f64; 2],
+    /// Whether a map calibrated `p_success`, or why not.
+    #[serde(default)]
+    pub calibration: CalibrationStatus,
+    /// The rule that gave `decision` (its threshold is `threshold`).
+    #[serde(default)]
+    pub rule: GraspRule,
+    /// Set when the answer went through the track's
+    /// [`AnswerSmoother`](super::calibrated::AnswerSmoother): `p_success`, `ci95`
+    /// and `decision` are then the smoothed ones.
+    #[serde(default)]
+    pub smoothing: Option<SmoothingStatus>,
     pub n_samples: usize,
     pub effective_sample_size: f64,
     pub threshold: f64,
@@ -479,13 +507,36 @@ fn evaluate_grasp(
 /// with the highest p_success is chosen (all are returned, fully evaluated ones first).
 /// `p_success` is the share of samples passing every test; its 95% Wilson interval uses the
 /// effective sample size (scaled to the samples used, at most their number). The verdict is
-/// `Grasp` only when the interval's lower bound reaches `query.threshold`.
+/// `Grasp` only when the interval's lower bound reaches `query.threshold`. No calibration map:
+/// [`decide_calibrated`] with [`Calibration::raw`].
 pub fn decide(
     object: &GraspObject,
     gripper: &Gripper,
     estimate: &Pose,
     samples: &PoseSamples,
     query: &DecisionQuery,
+) -> Result<Decision, GraspError> {
+    decide_calibrated(
+        object,
+        gripper,
+        estimate,
+        samples,
+        query,
+        &Calibration::raw("no calibration map given; p_success is the raw rate"),
+    )
+}
+
+/// [`decide`] with `p_success` and `ci95` through `calibration`'s map (the raw rate and its
+/// interval stay beside them), and the verdict by the calibration's rule with
+/// `query.threshold` (callers pass `calibration.rule().threshold` when their client gave
+/// none). Candidates are ranked and listed by their raw rate.
+pub fn decide_calibrated(
+    object: &GraspObject,
+    gripper: &Gripper,
+    estimate: &Pose,
+    samples: &PoseSamples,
+    query: &DecisionQuery,
+    calibration: &Calibration,
 ) -> Result<Decision, GraspError> {
     gripper.validate()?;
     if !(query.threshold > 0.0 && query.threshold <= 1.0) {
@@ -590,8 +641,13 @@ pub fn decide(
         }
     };
 
-    let p = share(&eval.outcomes, |o| o.success());
-    let ci95 = wilson_interval(p, ess);
+    let p_raw = share(&eval.outcomes, |o| o.success());
+    let ci95_raw = wilson_interval(p_raw, ess);
+    let (p, ci95, status) = calibration.calibrate(p_raw, ci95_raw);
+    let rule = GraspRule {
+        threshold: query.threshold,
+        ..calibration.rule()
+    };
     let offsets = offsets_in_gripper(&eval.reference_from_gripper, estimate, poses);
     let frames = (&eval.reference_from_gripper, &grasp.object_from_gripper);
     let reasons = reasons(&eval.outcomes, &offsets, frames);
@@ -599,13 +655,18 @@ pub fn decide(
     let mut uncertainty = axis_drivers(&failed, &offsets, frames);
     uncertainty.sort_by(|a, b| b.failure_dependence.total_cmp(&a.failure_dependence));
     Ok(Decision {
-        decision: if ci95[0] >= query.threshold {
+        decision: if rule.admits(p, ci95, ci95_raw) && rule.run_length <= 1 {
             Verdict::Grasp
         } else {
             Verdict::Observe
         },
         p_success: p,
         ci95,
+        p_success_raw: p_raw,
+        ci95_raw,
+        calibration: status,
+        rule,
+        smoothing: None,
         n_samples: n,
         effective_sample_size: ess,
         threshold: query.threshold,

@@ -31,7 +31,25 @@
 //! // d.decision, d.p_success, d.ci95, d.reasons[i].{test, failure_share, drivers, message}
 //! let ok = success_on_pose(&object, &gripper, &d.reference_from_gripper, &truth, Some(&plane))?;
 //! let view = suggest_view(&d, &views);                   // which listed view to take next
+//!
+//! // calibrated: the shipped map, checked against the running settings' hash
+//! // (eval::calibration::calibration_settings_hash); raw with a warning when stale
+//! let calibration = Calibration::shipped(&settings_hash);
+//! let query = DecisionQuery { threshold: calibration.rule().threshold, ..query };
+//! let d = decide_calibrated(&object, &gripper, &estimate, &samples, &query, &calibration)?;
+//! // d.p_success (calibrated), d.p_success_raw, d.ci95, d.ci95_raw, d.calibration, d.rule
+//! let mut smoother = calibration.smoother();             // one per track, kept between steps
+//! let mut d = d;
+//! smoother.apply(step_stamp_ns, &mut d, &calibration);  // once per tracker step and question
+//! // d.p_success, d.ci95, d.decision now smoothed; d.smoothing.{run, p_success_unsmoothed}
 //! ```
+//!
+//! The rule (`calibrated.rs`): the raw rate is smoothed over the last answers about the track
+//! (time constant of the map), put through a monotone map fitted on generated sequences
+//! (isotonic regression of the outcome on the true pose), and `grasp` is answered when the
+//! calibrated probability (or its lower bound) clears the rule's threshold in a run of answers.
+//! The map, its time constant and its rule are chosen by `pregrasp calibrate` (README, "The
+//! grasp rule").
 //!
 //! Timing (`cargo bench --bench grasp`, one rayon thread, 1,000 samples, a fixed top grasp):
 //! CPU time per decision 10.6 ms for the 4,539-triangle YCB can (convex hull, hill-climbing
@@ -43,9 +61,11 @@
 //! Files: `gripper.rs` (the gripper model and its JSON), `object.rs` (solid shapes, cached per
 //! mesh content hash), `hull.rs` (a convex hull with a hill-climbing support map),
 //! `candidates.rs` (grasps and their generation), `decision.rs` (the per-sample tests, the
-//! decision and its reasons), `calibration.rs` (predicted vs observed), `view.rs`
+//! decision and its reasons), `calibrated.rs` (the calibration map, its settings hash, the
+//! rule and the per-track smoother), `calibration.rs` (predicted vs observed), `view.rs`
 //! (next-best-view suggestion), `convert.rs` (nalgebra <-> parry).
 
+pub mod calibrated;
 pub mod calibration;
 pub mod candidates;
 pub mod convert;
@@ -55,11 +75,15 @@ pub mod hull;
 pub mod object;
 pub mod view;
 
+pub use calibrated::{
+    AnswerSmoother, Calibration, CalibrationMap, CalibrationStatus, GraspRule, RuleQuantity, SmoothedAnswer,
+    SmoothingStatus,
+};
 pub use calibration::{CalibrationRecord, CalibrationReport, ReliabilityBin, calibration_report};
 pub use candidates::{Grasp, generate_candidates};
 pub use decision::{
     AxisDriver, Decision, DecisionQuery, FailureTest, Motion, PoseOutcome, RankedGrasp, Reason, Verdict, decide,
-    evaluate_pose, success_on_pose, wilson_interval,
+    decide_calibrated, evaluate_pose, success_on_pose, wilson_interval,
 };
 pub use gripper::{Gripper, PadGeometry};
 pub use object::{GraspObject, SolidKind};
@@ -86,6 +110,10 @@ pub enum GraspError {
     NoCandidate(String),
     #[error("geometry query unsupported by parry3d: {0}")]
     Unsupported(String),
+    #[error("calibration map: {0}")]
+    Calibration(String),
+    #[error("calibration map fitted for settings {map}, running {running}: refit it (`pregrasp calibrate`)")]
+    StaleCalibration { map: String, running: String },
 }
 
 /// The plane the object stands on (the table), in the frame of the samples. `normal` points
