@@ -14,10 +14,8 @@ use crate::camera::{ColorImage, DepthImage, Intrinsics};
 use crate::geometry::{Pose, RotationGrid};
 use crate::mesh::Mesh;
 use crate::tracker::TrackerError;
-use crate::tracker::encoder::{
-    CodeBlock, CodeLayout, CropParams, ENCODER_VERSION, Encoder, FeatureLayout, FnTraining, LinearDenoisingEncoder,
-    sample_crop, to_chromaticity,
-};
+use crate::tracker::crop::{CropParams, FeatureLayout, sample_crop, to_chromaticity};
+use crate::tracker::encoder::{CodeBlock, CodeLayout, ENCODER_VERSION, Encoder, FnTraining, LinearDenoisingEncoder};
 use nalgebra::{Translation3, UnitQuaternion};
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
@@ -60,7 +58,7 @@ pub struct CodebookConfig {
     /// table seen from above: steep depth gradient, the table's colour).
     pub support_plane_prob: f64,
     /// Remove the support plane from crops before encoding
-    /// ([`crate::tracker::encoder::suppress_support_plane`]), observed and training crops alike.
+    /// ([`crate::tracker::crop::suppress_support_plane`]), observed and training crops alike.
     pub suppress_plane: bool,
     /// Partial whitening of the codes: each PCA component scaled by its variance to the
     /// power `-whiten / 2` (0: plain PCA, 1: full whitening; see the encoder's module docs).
@@ -68,7 +66,7 @@ pub struct CodebookConfig {
     pub whiten: f64,
     /// What the colour cells hold (with `use_color`): chromaticity by default, so that the
     /// scene's lighting does not move the codes
-    /// ([`crate::tracker::encoder::to_chromaticity`]).
+    /// ([`crate::tracker::crop::to_chromaticity`]).
     #[serde(default)]
     pub color_features: ColorFeatures,
     /// With `use_color`: depth and colour get codes of their own, this many components of
@@ -259,7 +257,7 @@ pub struct Codebook {
     /// One unit row of `code_dim` values per bin.
     pub codes: Codes,
     /// Per viewpoint: median normalised depth of the template's central surface
-    /// ([`crate::tracker::encoder::central_median_depth`]; NaN when none).
+    /// ([`crate::tracker::crop::central_median_depth`]; NaN when none).
     pub median_depth_norm: Vec<f32>,
     /// Seconds the build took (0 when loaded from the cache).
     pub build_seconds: f64,
@@ -477,7 +475,7 @@ impl Codebook {
                 let mut x = vec![0f32; d];
                 let mut mask = vec![false; d];
                 template(v, 0.0, &mut x, &mut mask);
-                crate::tracker::encoder::central_median_depth(&layout, &x, &mask).unwrap_or(f32::NAN)
+                crate::tracker::crop::central_median_depth(&layout, &x, &mask).unwrap_or(f32::NAN)
             })
             .collect();
         Ok(Self {
@@ -593,7 +591,7 @@ fn corrupt(
             }
         }
     }
-    crate::tracker::encoder::denoise_depth(layout, &mut x[..f * f], &mask[..f * f]);
+    crate::tracker::crop::denoise_depth(layout, &mut x[..f * f], &mask[..f * f]);
     // occluder: a near rectangle
     if rng.random::<f64>() < 0.4 {
         let (w, h) = (rng.random_range(f / 6..f / 2 + 1), rng.random_range(f / 6..f / 2 + 1));
@@ -646,9 +644,9 @@ fn corrupt(
         }
     }
     if config.suppress_plane {
-        crate::tracker::encoder::suppress_support_plane(layout, &mut x, &mask, has_color);
+        crate::tracker::crop::suppress_support_plane(layout, &mut x, &mask, has_color);
     }
-    crate::tracker::encoder::inpaint_depth(layout, &mut x, &mut mask, has_color);
+    crate::tracker::crop::inpaint_depth(layout, &mut x, &mut mask, has_color);
     to_chromaticity(layout, &mut x, &mask);
     (x, mask)
 }

@@ -1,13 +1,18 @@
 //! The multi-view Rao-Blackwellized particle filter (the seed paper, section IV).
 //!
 //! Files:
-//! - [`bins`]: fast operations on the rotation grid: Euler angles of a rotation, one *bin map*
-//!   per view and step (pull re-binning), the wrap-around separable blur, volume weights.
-//! - [`encoder`]: the crop features and the default encoder (PCA + ridge-regression denoising),
-//!   behind the [`encoder::Encoder`] trait.
+//! - [`bins`]: the rotation grid's tables: Euler angles and the bin of a rotation, volume
+//!   weights, one *bin map* per view and step (pull re-binning).
+//! - [`kernels`]: the hot loops over histograms: the matching GEMM, the wrap-around separable
+//!   blur, a vectorisable `exp`, pull gathers, run-time SIMD dispatch.
+//! - [`crop`]: the crop features: sampling a crop, support-plane suppression, depth denoising
+//!   and inpainting, chromaticity.
+//! - [`encoder`]: the default encoder (PCA + ridge-regression denoising) behind the
+//!   [`encoder::Encoder`] trait.
 //! - [`codebook`]: templates rendered at every viewpoint, in-plane bins by 2-D rotation,
 //!   encoded and cached on disk.
-//! - [`observation`]: crops around projected particles, matching (chunked GEMM), likelihoods.
+//! - [`observation`]: crops around projected particles, matching (chunked GEMM), likelihoods;
+//!   [`observation::fuse`], the fused measurement update of the dense histograms.
 //! - [`motion`]: Brownian object motion and the odometry motion model of the robot camera.
 //! - [`estimate`]: mean pose, components, rotation modes, covariance, samples.
 //! - [`filter`]: the [`Tracker`] itself.
@@ -45,9 +50,11 @@
 
 pub mod bins;
 pub mod codebook;
+pub mod crop;
 pub mod encoder;
 pub mod estimate;
 pub mod filter;
+pub mod kernels;
 pub mod motion;
 pub mod observation;
 pub mod sparse;
