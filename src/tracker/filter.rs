@@ -208,10 +208,14 @@ struct TrackState {
     /// Per camera, the rotation of its last bin map, and the whole grid's map once that
     /// rotation held still for two steps (static cameras, a slowly moving mean): reused while
     /// the rotation moves by less than [`MAP_REUSE_RAD`].
-    map_cache: Vec<(String, UnitQuaternion<f64>, Option<Arc<Vec<u32>>>)>,
+    map_cache: Vec<CachedMap>,
     /// Position of the rotating slice of the grid matched at the next step.
     slice_cursor: usize,
 }
+
+/// One camera's entry of a track's bin-map cache: the camera's name, the rotation of its last
+/// bin map, and the whole grid's map when cached.
+type CachedMap = (String, UnitQuaternion<f64>, Option<Arc<Vec<u32>>>);
 
 /// A cached bin map is reused while its rotation differs by less than this (a bin is 5 degrees).
 const MAP_REUSE_RAD: f64 = 0.002;
