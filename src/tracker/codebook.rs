@@ -44,10 +44,8 @@ pub struct CodebookConfig {
     pub code_dim: usize,
     pub use_color: bool,
     pub color_weight: f32,
-    /// Corrupted training crops for the ridge regression. 36,000 by default: with 12,000 the
-    /// real mug clip's outcome hung on which crops were drawn (over eight training seeds the
-    /// last frame's geodesic error was 11-57 deg, the spin left open in four); with 36,000 it is
-    /// 12-16 deg in all eight, the spin open in seven. The fit keeps only sums over the crops
+    /// Corrupted training crops for the ridge regression (36,000 by default: fewer leave the
+    /// result at the mercy of which crops were drawn). The fit keeps only sums over the crops
     /// ([`LinearDenoisingEncoder::fit_streamed`]), so more crops cost build time, not memory.
     pub n_train: usize,
     pub ridge_lambda_rel: f64,
@@ -72,8 +70,8 @@ pub struct CodebookConfig {
     /// With `use_color`: depth and colour get codes of their own, this many components of
     /// `code_dim` for the colour, and the similarity is the weighted mean of the two cosines
     /// (a product of experts, see [`crate::tracker::encoder::finish_codes`]). 0: one code of
-    /// depth and colour together (encoder v4), where a real crop's colour, far from the mesh's,
-    /// drowned what its depth said.
+    /// depth and colour together, where a real crop's colour, far from the mesh's, drowns what
+    /// its depth says.
     #[serde(default = "default_color_code_dim")]
     pub color_code_dim: usize,
     /// Weight of the colour cosine in the similarity (the depth's is `1 - color_code_weight`).
@@ -132,10 +130,8 @@ impl CodebookConfig {
             feature_px: 16,
             render_px: 32,
             // 48 depth and 16 colour components, colour weighing more than in the full
-            // codebook (whose depth cells are four times as many). The rendered box of
-            // `tracker_scenarios` (one scene, bound 20 deg) ended 18.5 deg off with these,
-            // 28.0 with colour at 0.25, 28.7 with 32 depth components; the real mug clip of
-            // `tracker_realdata` 1.6 cm off with these, 2.5 cm with colour at 0.25.
+            // codebook (whose depth cells are four times as many); the comparison that chose
+            // them is in docs/decisions.md
             code_dim: 64,
             color_code_dim: 16,
             color_code_weight: 0.5,

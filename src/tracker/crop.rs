@@ -226,21 +226,15 @@ const CHROMA_DARK: f32 = 0.15;
 ///
 /// Why: shading is not a cue a codebook can rely on. Templates are lit by a headlight, real
 /// scenes by lights elsewhere, and the brightness pattern over an object (not its hue) is what
-/// changes with the light. Measured with raw RGB: on generated scenes lit from above (64
-/// sequences, 10-degree grid) the orientation error was 88.5 degrees against 30.5 with the
-/// templates' own headlight, and on the real mug the true pose ranked 24-443 of 24,624 bins.
-/// With chromaticity: 59.7 degrees on the lit scenes (every 5th frame; 53.4 every frame) and
-/// rank 4-44 on the real mug. The hue pattern that tells a box from its flip (the print)
-/// survives any light.
-/// A per-channel gain normalisation (exposure, white balance) alone did not help the real mug
-/// (rank 39-273): its mismatch is the shading, not the mean colour.
+/// changes with the light; the hue pattern that tells a box from its flip (the print)
+/// survives any light. A per-channel gain (exposure, white balance) does not replace it: the
+/// mismatch is the shading, not the mean colour.
 ///
 /// Only the object's colour cells change (those over a depth cell that is object or nearer,
 /// normalised depth < 1; a crop with fewer than three is left alone); grey would map to itself
-/// anyway, masked cells stay masked. Applying it to every cell instead measured worse on the
-/// real mug for the default encoder seed (the spin's modes spread over 19 degrees against 33;
-/// one seed of a 10-frame clip, see `tests/eval_realdata.rs`). Applied to templates,
-/// training crops and observed crops alike, after the support plane is removed.
+/// anyway, masked cells stay masked. Applied to templates, training crops and observed crops
+/// alike, after the support plane is removed. The measurements behind this:
+/// `docs/decisions.md` ("Tracker: decisions moved from the code").
 pub fn to_chromaticity(layout: &FeatureLayout, x: &mut [f32], mask: &[bool]) {
     if !(layout.use_color && layout.chromaticity) {
         return;
@@ -408,15 +402,15 @@ pub fn inpaint_depth(layout: &FeatureLayout, x: &mut [f32], mask: &mut [bool], h
 /// circle leaves it free when the crop is centred) and turns every depth cell that lies on or
 /// behind that plane into far background (1), as in the renders; colour cells over far depth
 /// become background grey. A table or floor at the object's depth otherwise reads as object
-/// shape to the linear encoder (issue 3's cause 1).
+/// shape to the linear encoder.
 ///
 /// - Fit: least median of squares over deterministic triples of ring cells, refined by least
 ///   squares on the inliers (`|r| < 2.5 sigma`, sigma from the median residual). Needs at least
 ///   40 % of the ring to be in-range depth and to agree with the plane, else nothing is done
 ///   (no plane around the object: free space behind it reads far already; a table so steep
-///   that it saturates most of the ring is left to the encoder, which is trained on such crops:
-///   fitting those too measured worse, 75 against 58 degrees on the 16 generated sequences and
-///   3.7 against 1.8 cm on the real mug).
+///   that it saturates most of the ring is left to the encoder, which is trained on such crops
+///   and did better than a fit of those too: `docs/decisions.md`, "Tracker: decisions moved
+///   from the code").
 /// - Test per cell: the residual to the plane averaged over the 3 x 3 neighbourhood (noise of
 ///   a single cell is large for far cameras) must not be in front of the plane by more than
 ///   `3 sigma / sqrt(neighbours)`. Where the camera gives colour, a cell within that band is
@@ -433,7 +427,7 @@ pub fn suppress_support_plane(layout: &FeatureLayout, x: &mut [f32], mask: &[boo
 /// [`suppress_support_plane`] that also fits a table so steep that it saturates most of the
 /// ring (the ring's saturated cells then only score the plane) and allows for the affine
 /// model's error over a crop (noise scale at least `MIN_PLANE_SIGMA`). Too eager for the
-/// encoder's input (measured worse), it answers whether anything stands on the table at all:
+/// encoder's input, it answers whether anything stands on the table at all:
 /// see `observation::encode_particles`.
 pub fn suppress_support_plane_steep(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has_color: bool) -> bool {
     suppress_plane_impl(layout, x, mask, has_color, true)

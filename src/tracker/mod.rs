@@ -22,14 +22,13 @@
 //! reference camera of a rig without one), as in the paper: the grasp decision consumes the
 //! distribution there, and the odometry noise enters the motion model (Eq. 3) per particle.
 //! The rotation *histograms* of a track live in the frame `H` of the reference camera at the
-//! moment the track started (`reference_from_hist` is updated with the exact odometry). We
-//! measured why: re-binning the prior into the moving reference frame at every step through a
-//! nearest-bin pull map never moves it at all when the per-step rotation is below half a bin
-//! (2.5 degrees on the full grid), so the estimate fell behind by the accumulated rotation
-//! (14 degrees after 6 steps of 2.3 degrees in the odometry scenario test; 9 degrees steady,
-//! the codebook's own error, with the `H` frame). Every view, the reference camera included,
-//! is pulled into `H` through one bin map per view and step; the cost is one more map
-//! (about 191,808 rotation products) per step for the robot camera.
+//! moment the track started (`reference_from_hist` is updated with the exact odometry):
+//! re-binning the prior into the moving reference frame at every step through a nearest-bin
+//! pull map never moves it at all when the per-step rotation is below half a bin (2.5 degrees
+//! on the full grid), so the estimate would fall behind by the accumulated rotation (the
+//! measurement: `docs/decisions.md`). Every view, the reference camera included, is pulled
+//! into `H` through one bin map per view and step; the cost is one more map (about 191,808
+//! rotation products) per step for the robot camera.
 //!
 //! Histograms are allocentric with respect to each particle's ray (in `H`); the bin maps use
 //! the rays of the object's mean position (particles of one object differ by about a degree).
@@ -44,9 +43,9 @@
 //!   mixture of Eq. 2 keeps one component per camera.
 //! - The particle weights' update (Eq. 7) is tempered by the number of views
 //!   (`TrackerConfig::view_weight_tempering`): the rotation histograms multiply every view,
-//!   but the weights that choose translation particles are as peaked as one view's. Plain
-//!   products of three views left 1-3 effective particles of 110 after every step, and the
-//!   estimate flipped between the modes of whichever particle won.
+//!   but the weights that choose translation particles are as peaked as one view's: a plain
+//!   product of the views leaves almost no effective particles, and the estimate flips
+//!   between the modes of whichever particle wins.
 
 pub mod bins;
 pub mod codebook;

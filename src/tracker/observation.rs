@@ -12,12 +12,10 @@
 //!
 //! A view's log-likelihood (and its floor) is scaled by its *evidence strength*,
 //! `(best - gate) / (full - gate)` clamped to 0..1, with `best` its best absolute similarity.
-//! The relative `c / c_max` ranks whatever a view sees with the same confidence, a crop of
-//! noise included: a far camera seeing a thin banana through depth noise larger than the
-//! banana matched its true pose at 0.1-0.3 and a flipped one at 0.55, and multiplied that in
-//! at full strength. Measured on generated scenes (10-degree grid): orientation error
-//! 27.4 -> 20.4 deg, log-likelihood of the truth -5.7 -> -3.9; on the real mug the
-//! distribution's entropy rose from 2.4 to 6 nats (its poor matches no longer pick one pose).
+//! The relative `c / c_max` alone ranks whatever a view sees with the same confidence, a crop
+//! of noise included (a far camera seeing a thin object through depth noise larger than the
+//! object), and multiplies that in at full strength. Measurements: `docs/decisions.md`
+//! ("Tracker: decisions moved from the code").
 
 pub mod fuse;
 
