@@ -8,7 +8,8 @@
 use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
 use nalgebra::{DMatrixView, DMatrixViewMut, UnitQuaternion};
 use pregrasp::geometry::RotationGrid;
-use pregrasp::tracker::bins::{FusedView, GridTables, blur, blur_reference, fuse_update, gaussian_kernel, match_best};
+use pregrasp::tracker::bins::{GridTables, blur, blur_reference, gaussian_kernel, match_best};
+use pregrasp::tracker::observation::fuse::{FusedView, fuse_update};
 use pregrasp::tracker::observation::{ViewEvidence, add_loglik};
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;

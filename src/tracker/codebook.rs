@@ -14,10 +14,8 @@ use crate::camera::{ColorImage, DepthImage, Intrinsics};
 use crate::geometry::{Pose, RotationGrid};
 use crate::mesh::Mesh;
 use crate::tracker::TrackerError;
-use crate::tracker::encoder::{
-    CodeBlock, CodeLayout, CropParams, ENCODER_VERSION, Encoder, FeatureLayout, FnTraining, LinearDenoisingEncoder,
-    sample_crop, to_chromaticity,
-};
+use crate::tracker::crop::{CropParams, FeatureLayout, sample_crop, to_chromaticity};
+use crate::tracker::encoder::{CodeBlock, CodeLayout, ENCODER_VERSION, Encoder, FnTraining, LinearDenoisingEncoder};
 use nalgebra::{Translation3, UnitQuaternion};
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
@@ -46,10 +44,8 @@ pub struct CodebookConfig {
     pub code_dim: usize,
     pub use_color: bool,
     pub color_weight: f32,
-    /// Corrupted training crops for the ridge regression. 36,000 by default: with 12,000 the
-    /// real mug clip's outcome hung on which crops were drawn (over eight training seeds the
-    /// last frame's geodesic error was 11-57 deg, the spin left open in four); with 36,000 it is
-    /// 12-16 deg in all eight, the spin open in seven. The fit keeps only sums over the crops
+    /// Corrupted training crops for the ridge regression (36,000 by default: fewer leave the
+    /// result at the mercy of which crops were drawn). The fit keeps only sums over the crops
     /// ([`LinearDenoisingEncoder::fit_streamed`]), so more crops cost build time, not memory.
     pub n_train: usize,
     pub ridge_lambda_rel: f64,
@@ -60,7 +56,7 @@ pub struct CodebookConfig {
     /// table seen from above: steep depth gradient, the table's colour).
     pub support_plane_prob: f64,
     /// Remove the support plane from crops before encoding
-    /// ([`crate::tracker::encoder::suppress_support_plane`]), observed and training crops alike.
+    /// ([`crate::tracker::crop::suppress_support_plane`]), observed and training crops alike.
     pub suppress_plane: bool,
     /// Partial whitening of the codes: each PCA component scaled by its variance to the
     /// power `-whiten / 2` (0: plain PCA, 1: full whitening; see the encoder's module docs).
@@ -68,14 +64,14 @@ pub struct CodebookConfig {
     pub whiten: f64,
     /// What the colour cells hold (with `use_color`): chromaticity by default, so that the
     /// scene's lighting does not move the codes
-    /// ([`crate::tracker::encoder::to_chromaticity`]).
+    /// ([`crate::tracker::crop::to_chromaticity`]).
     #[serde(default)]
     pub color_features: ColorFeatures,
     /// With `use_color`: depth and colour get codes of their own, this many components of
     /// `code_dim` for the colour, and the similarity is the weighted mean of the two cosines
     /// (a product of experts, see [`crate::tracker::encoder::finish_codes`]). 0: one code of
-    /// depth and colour together (encoder v4), where a real crop's colour, far from the mesh's,
-    /// drowned what its depth said.
+    /// depth and colour together, where a real crop's colour, far from the mesh's, drowns what
+    /// its depth says.
     #[serde(default = "default_color_code_dim")]
     pub color_code_dim: usize,
     /// Weight of the colour cosine in the similarity (the depth's is `1 - color_code_weight`).
@@ -134,10 +130,8 @@ impl CodebookConfig {
             feature_px: 16,
             render_px: 32,
             // 48 depth and 16 colour components, colour weighing more than in the full
-            // codebook (whose depth cells are four times as many). The rendered box of
-            // `tracker_scenarios` (one scene, bound 20 deg) ended 18.5 deg off with these,
-            // 28.0 with colour at 0.25, 28.7 with 32 depth components; the real mug clip of
-            // `tracker_realdata` 1.6 cm off with these, 2.5 cm with colour at 0.25.
+            // codebook (whose depth cells are four times as many); the comparison that chose
+            // them is in docs/decisions.md
             code_dim: 64,
             color_code_dim: 16,
             color_code_weight: 0.5,
@@ -259,7 +253,7 @@ pub struct Codebook {
     /// One unit row of `code_dim` values per bin.
     pub codes: Codes,
     /// Per viewpoint: median normalised depth of the template's central surface
-    /// ([`crate::tracker::encoder::central_median_depth`]; NaN when none).
+    /// ([`crate::tracker::crop::central_median_depth`]; NaN when none).
     pub median_depth_norm: Vec<f32>,
     /// Seconds the build took (0 when loaded from the cache).
     pub build_seconds: f64,
@@ -477,7 +471,7 @@ impl Codebook {
                 let mut x = vec![0f32; d];
                 let mut mask = vec![false; d];
                 template(v, 0.0, &mut x, &mut mask);
-                crate::tracker::encoder::central_median_depth(&layout, &x, &mask).unwrap_or(f32::NAN)
+                crate::tracker::crop::central_median_depth(&layout, &x, &mask).unwrap_or(f32::NAN)
             })
             .collect();
         Ok(Self {
@@ -593,7 +587,7 @@ fn corrupt(
             }
         }
     }
-    crate::tracker::encoder::denoise_depth(layout, &mut x[..f * f], &mask[..f * f]);
+    crate::tracker::crop::denoise_depth(layout, &mut x[..f * f], &mask[..f * f]);
     // occluder: a near rectangle
     if rng.random::<f64>() < 0.4 {
         let (w, h) = (rng.random_range(f / 6..f / 2 + 1), rng.random_range(f / 6..f / 2 + 1));
@@ -646,9 +640,9 @@ fn corrupt(
         }
     }
     if config.suppress_plane {
-        crate::tracker::encoder::suppress_support_plane(layout, &mut x, &mask, has_color);
+        crate::tracker::crop::suppress_support_plane(layout, &mut x, &mask, has_color);
     }
-    crate::tracker::encoder::inpaint_depth(layout, &mut x, &mut mask, has_color);
+    crate::tracker::crop::inpaint_depth(layout, &mut x, &mut mask, has_color);
     to_chromaticity(layout, &mut x, &mask);
     (x, mask)
 }

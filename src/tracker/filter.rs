@@ -85,15 +85,10 @@ pub struct TrackerConfig {
     ///
     /// Why: the observation model's sharpness was tuned for one view (PoseRBPF), and the
     /// views' errors in the translation direction are not independent (a crop a centimetre off
-    /// the object matches worse in every view at once). Summing three views' log-marginals
-    /// spread the particles' log-weights by 13-19 nats (median over a step) and left an
-    /// effective sample size of 1-3 of 110 after every step: the mixture histogram was one
-    /// particle's, and the estimate flipped between its modes from step to step. With `t = 1`
-    /// the weights are as peaked as one view's (the single-view filter is unchanged). Measured
-    /// on 64 generated sequences (four sets of 16, the 8 YCB objects, 10-degree grid, every 5th
-    /// frame): orientation error 39.5 -> 30.5 degrees (L1; geodesic 29.6 -> 22.2), translation
-    /// 0.0233 -> 0.0222 m, log-likelihood of the truth -4.61 -> -3.79; a fixed exponent of 0.3
-    /// gave 33.6 degrees, 0.1 lost translation (0.033 m).
+    /// the object matches worse in every view at once), so a plain product of the views leaves
+    /// almost no effective particles. With `t = 1` the weights are as peaked as one view's (the
+    /// single-view filter is unchanged). Measurements: `docs/decisions.md`
+    /// ("Tracker: decisions moved from the code").
     #[serde(default = "default_view_weight_tempering")]
     pub view_weight_tempering: f64,
     /// What each step matches and keeps of the rotation grid.
@@ -212,10 +207,14 @@ struct TrackState {
     /// Per camera, the rotation of its last bin map, and the whole grid's map once that
     /// rotation held still for two steps (static cameras, a slowly moving mean): reused while
     /// the rotation moves by less than [`MAP_REUSE_RAD`].
-    map_cache: Vec<(String, UnitQuaternion<f64>, Option<Arc<Vec<u32>>>)>,
+    map_cache: Vec<CachedMap>,
     /// Position of the rotating slice of the grid matched at the next step.
     slice_cursor: usize,
 }
+
+/// One camera's entry of a track's bin-map cache: the camera's name, the rotation of its last
+/// bin map, and the whole grid's map when cached.
+type CachedMap = (String, UnitQuaternion<f64>, Option<Arc<Vec<u32>>>);
 
 /// A cached bin map is reused while its rotation differs by less than this (a bin is 5 degrees).
 const MAP_REUSE_RAD: f64 = 0.002;

@@ -1,13 +1,18 @@
 //! The multi-view Rao-Blackwellized particle filter (the seed paper, section IV).
 //!
 //! Files:
-//! - [`bins`]: fast operations on the rotation grid: Euler angles of a rotation, one *bin map*
-//!   per view and step (pull re-binning), the wrap-around separable blur, volume weights.
-//! - [`encoder`]: the crop features and the default encoder (PCA + ridge-regression denoising),
-//!   behind the [`encoder::Encoder`] trait.
+//! - [`bins`]: the rotation grid's tables: Euler angles and the bin of a rotation, volume
+//!   weights, one *bin map* per view and step (pull re-binning).
+//! - [`kernels`]: the hot loops over histograms: the matching GEMM, the wrap-around separable
+//!   blur, a vectorisable `exp`, pull gathers, run-time SIMD dispatch.
+//! - [`crop`]: the crop features: sampling a crop, support-plane suppression, depth denoising
+//!   and inpainting, chromaticity.
+//! - [`encoder`]: the default encoder (PCA + ridge-regression denoising) behind the
+//!   [`encoder::Encoder`] trait.
 //! - [`codebook`]: templates rendered at every viewpoint, in-plane bins by 2-D rotation,
 //!   encoded and cached on disk.
-//! - [`observation`]: crops around projected particles, matching (chunked GEMM), likelihoods.
+//! - [`observation`]: crops around projected particles, matching (chunked GEMM), likelihoods;
+//!   [`observation::fuse`], the fused measurement update of the dense histograms.
 //! - [`motion`]: Brownian object motion and the odometry motion model of the robot camera.
 //! - [`estimate`]: mean pose, components, rotation modes, covariance, samples.
 //! - [`filter`]: the [`Tracker`] itself.
@@ -17,14 +22,13 @@
 //! reference camera of a rig without one), as in the paper: the grasp decision consumes the
 //! distribution there, and the odometry noise enters the motion model (Eq. 3) per particle.
 //! The rotation *histograms* of a track live in the frame `H` of the reference camera at the
-//! moment the track started (`reference_from_hist` is updated with the exact odometry). We
-//! measured why: re-binning the prior into the moving reference frame at every step through a
-//! nearest-bin pull map never moves it at all when the per-step rotation is below half a bin
-//! (2.5 degrees on the full grid), so the estimate fell behind by the accumulated rotation
-//! (14 degrees after 6 steps of 2.3 degrees in the odometry scenario test; 9 degrees steady,
-//! the codebook's own error, with the `H` frame). Every view, the reference camera included,
-//! is pulled into `H` through one bin map per view and step; the cost is one more map
-//! (about 191,808 rotation products) per step for the robot camera.
+//! moment the track started (`reference_from_hist` is updated with the exact odometry):
+//! re-binning the prior into the moving reference frame at every step through a nearest-bin
+//! pull map never moves it at all when the per-step rotation is below half a bin (2.5 degrees
+//! on the full grid), so the estimate would fall behind by the accumulated rotation (the
+//! measurement: `docs/decisions.md`). Every view, the reference camera included, is pulled
+//! into `H` through one bin map per view and step; the cost is one more map (about 191,808
+//! rotation products) per step for the robot camera.
 //!
 //! Histograms are allocentric with respect to each particle's ray (in `H`); the bin maps use
 //! the rays of the object's mean position (particles of one object differ by about a degree).
@@ -39,15 +43,17 @@
 //!   mixture of Eq. 2 keeps one component per camera.
 //! - The particle weights' update (Eq. 7) is tempered by the number of views
 //!   (`TrackerConfig::view_weight_tempering`): the rotation histograms multiply every view,
-//!   but the weights that choose translation particles are as peaked as one view's. Plain
-//!   products of three views left 1-3 effective particles of 110 after every step, and the
-//!   estimate flipped between the modes of whichever particle won.
+//!   but the weights that choose translation particles are as peaked as one view's: a plain
+//!   product of the views leaves almost no effective particles, and the estimate flips
+//!   between the modes of whichever particle wins.
 
 pub mod bins;
 pub mod codebook;
+pub mod crop;
 pub mod encoder;
 pub mod estimate;
 pub mod filter;
+pub mod kernels;
 pub mod motion;
 pub mod observation;
 pub mod sparse;

@@ -12,16 +12,17 @@
 //!
 //! A view's log-likelihood (and its floor) is scaled by its *evidence strength*,
 //! `(best - gate) / (full - gate)` clamped to 0..1, with `best` its best absolute similarity.
-//! The relative `c / c_max` ranks whatever a view sees with the same confidence, a crop of
-//! noise included: a far camera seeing a thin banana through depth noise larger than the
-//! banana matched its true pose at 0.1-0.3 and a flipped one at 0.55, and multiplied that in
-//! at full strength. Measured on generated scenes (10-degree grid): orientation error
-//! 27.4 -> 20.4 deg, log-likelihood of the truth -5.7 -> -3.9; on the real mug the
-//! distribution's entropy rose from 2.4 to 6 nats (its poor matches no longer pick one pose).
+//! The relative `c / c_max` alone ranks whatever a view sees with the same confidence, a crop
+//! of noise included (a far camera seeing a thin object through depth noise larger than the
+//! object), and multiplies that in at full strength. Measurements: `docs/decisions.md`
+//! ("Tracker: decisions moved from the code").
+
+pub mod fuse;
 
 use crate::camera::{ColorImage, DepthImage, Intrinsics};
 use crate::tracker::codebook::Codebook;
-use crate::tracker::encoder::{CropParams, Encoder, sample_crop};
+use crate::tracker::crop::{CropParams, sample_crop};
+use crate::tracker::encoder::Encoder;
 use nalgebra::Vector3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -155,16 +156,16 @@ pub fn encode_particles(
                 // is anything standing on the table here? (the steep fit, on a copy: an empty
                 // patch of table must not pass for an object seen edge-on)
                 let mut probe = x[..f * f].to_vec();
-                if crate::tracker::encoder::suppress_support_plane_steep(&layout, &mut probe, &m, false) {
+                if crate::tracker::crop::suppress_support_plane_steep(&layout, &mut probe, &m, false) {
                     let near = (0..f * f).filter(|&c| !m[c] && probe[c] < 1.0).count();
                     has_object = near as f64 >= MIN_OBJECT_SHARE * (f * f) as f64;
                 }
-                crate::tracker::encoder::suppress_support_plane(&layout, &mut x, &m, view.color.is_some());
+                crate::tracker::crop::suppress_support_plane(&layout, &mut x, &m, view.color.is_some());
             }
-            crate::tracker::encoder::inpaint_depth(&layout, &mut x, &mut m, view.color.is_some());
-            crate::tracker::encoder::to_chromaticity(&layout, &mut x, &m);
+            crate::tracker::crop::inpaint_depth(&layout, &mut x, &mut m, view.color.is_some());
+            crate::tracker::crop::to_chromaticity(&layout, &mut x, &m);
             // depth check input: the central surface of the raw crop
-            let score = crate::tracker::encoder::central_median_depth(&layout, &raw_x, &raw_m).unwrap_or(f32::NAN);
+            let score = crate::tracker::crop::central_median_depth(&layout, &raw_x, &raw_m).unwrap_or(f32::NAN);
             (x, m, share >= MIN_VALID_SHARE && has_object, score)
         })
         .collect();
@@ -295,7 +296,7 @@ pub fn observe_view(
 /// The log-likelihood one view gives a bin, from the cosine similarity `c` of the particle's
 /// crop to the bin's code: `max(k (1 - c inv)^2, floor)` with `inv = 1 / c_max` and
 /// `k = -1 / (2 sigma^2)`. The one place of the formula: [`add_loglik`] and the fused update
-/// ([`crate::tracker::bins::fuse_update`]) both call it.
+/// ([`fuse::fuse_update`]) both call it.
 #[inline(always)]
 pub fn view_loglik(c: f32, inv: f32, k: f32, floor: f32) -> f32 {
     let x = 1.0 - c * inv;

@@ -365,6 +365,7 @@ impl Tracker {
 }
 
 /// A track state whose particles all carry `column` (normalised) as their histogram.
+#[allow(clippy::too_many_arguments)] // the parts of a track state, each from its own source
 fn state_from_column(
     model: usize,
     tables: &GridTables,

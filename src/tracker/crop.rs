@@ -1,0 +1,927 @@
+//! Crop features: a crop sampled around the (projected) object centre, and the preparation of
+//! an observed crop before it is encoded.
+//!
+//! A crop is a square around the object centre, sampled on a `F x F` grid (`F = feature_px`)
+//! with 2 x 2 nearest-neighbour sub-samples per cell ([`sample_crop`]):
+//! - depth, normalised `clamp((d - z) / box + 0.5, 0, 1)` (`z` the depth of the object centre,
+//!   `box` the object's diameter). A missing reading (0) is *masked*, never read as "near". In
+//!   codebook renders, an empty pixel is background and reads as far (1).
+//! - colour on a `F/2 x F/2` grid, RGB in [0, 1] times `color_weight`, where the (denoised)
+//!   depth cell under the sample says "object or nearer" (normalised < 1); far background
+//!   reads as a neutral grey so that the clutter behind the object does not count. Masked
+//!   where no depth sample is valid or the camera gives no colour. By default the object's
+//!   cells are then turned into chromaticity ([`to_chromaticity`]): the light changes their
+//!   brightness, not their hue.
+//!
+//! A far camera's depth is mostly noise against a small object (the paper's 5 % at 3 m is
+//! 0.15 m per pixel, more than a mug's diameter): crops whose estimated noise
+//! ([`depth_noise_sigma`]) is high are median-filtered ([`denoise_depth`]) before the colour
+//! is gated by them, so that the object/background split (and with it the colour) is not
+//! random in far views.
+//!
+//! A support plane (table, floor) around the object is removed from observed crops before
+//! encoding ([`suppress_support_plane`]): at the object's depth it would otherwise read as
+//! object shape and colour, and a linear encoder does not learn to ignore it.
+//!
+//! Masked values are replaced by the mean of the clean templates before encoding (the
+//! least-informative value for a linear encoder). Measured history: `docs/decisions.md`,
+//! "Tracker: decisions moved from the code".
+
+use crate::camera::{ColorImage, DepthImage, pixel_index};
+use serde::{Deserialize, Serialize};
+
+/// Colour of far background in features (before `color_weight`).
+const BACKGROUND_GREY: f32 = 0.5;
+/// The steep plane fit: ring residuals noisier than this (normalised depth) are clutter, not
+/// a plane.
+const MAX_PLANE_SIGMA: f32 = 0.3;
+/// The steep plane fit's lowest noise scale (normalised depth): the affine plane model is off
+/// by about this much over a crop (perspective).
+const MIN_PLANE_SIGMA: f32 = 0.03;
+/// Sub-samples per feature cell side.
+const SUBSAMPLES: usize = 2;
+
+/// Layout of a feature vector.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FeatureLayout {
+    pub feature_px: usize,
+    pub use_color: bool,
+    pub color_weight: f32,
+    /// Colour cells hold chromaticity, not RGB ([`to_chromaticity`]).
+    #[serde(default)]
+    pub chromaticity: bool,
+}
+
+impl FeatureLayout {
+    pub fn depth_len(&self) -> usize {
+        self.feature_px * self.feature_px
+    }
+    pub fn color_px(&self) -> usize {
+        (self.feature_px / 2).max(1)
+    }
+    pub fn color_len(&self) -> usize {
+        if self.use_color {
+            self.color_px() * self.color_px() * 3
+        } else {
+            0
+        }
+    }
+    pub fn dim(&self) -> usize {
+        self.depth_len() + self.color_len()
+    }
+    /// The depth cells (flat indices) under colour cell `(ci, cj)`: its `per x per` block, with
+    /// `per = feature_px / color_px`.
+    pub fn depth_cells_under(&self, ci: usize, cj: usize) -> impl Iterator<Item = usize> {
+        let f = self.feature_px;
+        let per = f / self.color_px();
+        (0..per).flat_map(move |a| (0..per).map(move |b| (ci * per + a) * f + cj * per + b))
+    }
+}
+
+/// Where and how to cut a crop out of an image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CropParams {
+    /// Crop centre, pixels (continuous coordinates: pixel `i` covers `[i, i + 1)`).
+    pub centre_px: [f64; 2],
+    /// Side of the square crop, pixels.
+    pub side_px: f64,
+    /// The crop is the image rotated by this angle about the centre (template in-plane bins).
+    pub rotation_rad: f64,
+    /// Depth of the object centre (m).
+    pub z_centre_m: f64,
+    /// Normalisation box (m).
+    pub box_m: f64,
+    /// Treat a zero depth (and pixels outside the image) as far background (renders) rather
+    /// than as missing (sensors).
+    pub zero_is_far: bool,
+}
+
+/// Samples the features of one crop into `out` (length `layout.dim()`), masks into `mask`.
+/// Returns the share of depth cells that are valid.
+pub fn sample_crop(
+    layout: &FeatureLayout,
+    depth: &DepthImage,
+    color: Option<&ColorImage>,
+    p: &CropParams,
+    out: &mut [f32],
+    mask: &mut [bool],
+) -> f64 {
+    let f = layout.feature_px;
+    let (w, h) = (depth.width as i64, depth.height as i64);
+    let (s, c) = p.rotation_rad.sin_cos();
+    // source pixel of a crop offset (in crop pixels from the centre)
+    let src = |qx: f64, qy: f64| -> Option<usize> {
+        // T_theta(q) = T_0(Rz(-theta) q)
+        let x = p.centre_px[0] + c * qx + s * qy;
+        let y = p.centre_px[1] - s * qx + c * qy;
+        let (xi, yi) = (pixel_index(x), pixel_index(y));
+        if xi < 0 || yi < 0 || xi >= w || yi >= h {
+            None
+        } else {
+            Some((yi * w + xi) as usize)
+        }
+    };
+    // unclamped here: the noise estimate and the median filter of [`denoise_depth`] need
+    // the values beyond the normalisation box; it clamps
+    let norm = |d: f32| -> Option<f32> {
+        if d > 0.0 && d.is_finite() {
+            Some(((d as f64 - p.z_centre_m) / p.box_m + 0.5) as f32)
+        } else if p.zero_is_far {
+            Some(1.0)
+        } else {
+            None
+        }
+    };
+    let cell = p.side_px / f as f64;
+    let mut valid = 0usize;
+    for i in 0..f {
+        for j in 0..f {
+            let mut sum = 0.0f32;
+            let mut n = 0;
+            for si in 0..SUBSAMPLES {
+                for sj in 0..SUBSAMPLES {
+                    let qx = (j as f64 + (sj as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0;
+                    let qy = (i as f64 + (si as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0;
+                    let v = match src(qx, qy) {
+                        Some(k) => norm(depth.data_m[k]),
+                        None => p.zero_is_far.then_some(1.0),
+                    };
+                    if let Some(v) = v {
+                        sum += v;
+                        n += 1;
+                    }
+                }
+            }
+            let k = i * f + j;
+            if n > 0 {
+                out[k] = sum / n as f32;
+                mask[k] = false;
+                valid += 1;
+            } else {
+                out[k] = 0.0;
+                mask[k] = true;
+            }
+        }
+    }
+    denoise_depth(layout, &mut out[..f * f], &mask[..f * f]);
+    if layout.use_color {
+        let fc = layout.color_px();
+        let ccell = p.side_px / fc as f64;
+        let base = layout.depth_len();
+        for i in 0..fc {
+            for j in 0..fc {
+                let mut sum = [0.0f32; 3];
+                let mut n = 0;
+                for si in 0..SUBSAMPLES {
+                    for sj in 0..SUBSAMPLES {
+                        let qx = (j as f64 + (sj as f64 + 0.5) / SUBSAMPLES as f64) * ccell - p.side_px / 2.0;
+                        let qy = (i as f64 + (si as f64 + 0.5) / SUBSAMPLES as f64) * ccell - p.side_px / 2.0;
+                        let k = src(qx, qy);
+                        // object or background: the (denoised) depth cell under this sample,
+                        // not the raw pixel (far cameras' per-pixel noise would flip it)
+                        let (di, dj) = (
+                            (i * f / fc + si * f / (fc * SUBSAMPLES)).min(f - 1),
+                            (j * f / fc + sj * f / (fc * SUBSAMPLES)).min(f - 1),
+                        );
+                        let d = (!mask[di * f + dj]).then(|| out[di * f + dj]);
+                        let Some(d) = d else { continue };
+                        let rgb = match (k, color) {
+                            (Some(k), Some(img)) if d < 1.0 => {
+                                let c = img.data[k];
+                                [c[0] as f32 / 255.0, c[1] as f32 / 255.0, c[2] as f32 / 255.0]
+                            }
+                            (_, Some(_)) => [BACKGROUND_GREY; 3],
+                            (_, None) => continue,
+                        };
+                        for ch in 0..3 {
+                            sum[ch] += rgb[ch];
+                        }
+                        n += 1;
+                    }
+                }
+                for (ch, sc) in sum.iter().enumerate() {
+                    let k = base + (i * fc + j) * 3 + ch;
+                    if n > 0 {
+                        out[k] = sc / n as f32 * layout.color_weight;
+                        mask[k] = false;
+                    } else {
+                        out[k] = 0.0;
+                        mask[k] = true;
+                    }
+                }
+            }
+        }
+    }
+    valid as f64 / (f * f) as f64
+}
+
+/// Below this brightness (before `color_weight`, summed over the channels: a third of it
+/// per channel) a colour cell's chromaticity fades to grey (see [`to_chromaticity`]).
+const CHROMA_DARK: f32 = 0.15;
+
+/// Turns every colour cell of a crop into its chromaticity (with `layout.chromaticity`): each
+/// channel divided by the cell's brightness, scaled so that grey stays the background grey,
+/// `c_ch = 3 g (v_ch + e) / (v_r + v_g + v_b + 3 e)` with `g` the background grey and `e` a
+/// third of [`CHROMA_DARK`] (dark cells, whose hue is noise, fade to grey).
+///
+/// Why: shading is not a cue a codebook can rely on. Templates are lit by a headlight, real
+/// scenes by lights elsewhere, and the brightness pattern over an object (not its hue) is what
+/// changes with the light; the hue pattern that tells a box from its flip (the print)
+/// survives any light. A per-channel gain (exposure, white balance) does not replace it: the
+/// mismatch is the shading, not the mean colour.
+///
+/// Only the object's colour cells change (those over a depth cell that is object or nearer,
+/// normalised depth < 1; a crop with fewer than three is left alone); grey would map to itself
+/// anyway, masked cells stay masked. Applied to templates, training crops and observed crops
+/// alike, after the support plane is removed. The measurements behind this:
+/// `docs/decisions.md` ("Tracker: decisions moved from the code").
+pub fn to_chromaticity(layout: &FeatureLayout, x: &mut [f32], mask: &[bool]) {
+    if !(layout.use_color && layout.chromaticity) {
+        return;
+    }
+    let grey = BACKGROUND_GREY * layout.color_weight;
+    let e = CHROMA_DARK / 3.0 * layout.color_weight;
+    let base = layout.depth_len();
+    let fc = layout.color_px();
+    let cells: Vec<usize> = (0..fc * fc)
+        .filter(|&c| !mask[base + c * 3] && layout.depth_cells_under(c / fc, c % fc).any(|k| !mask[k] && x[k] < 1.0))
+        .collect();
+    if cells.len() < 3 {
+        return;
+    }
+    for c in cells {
+        let k = base + c * 3;
+        let sum = x[k] + x[k + 1] + x[k + 2];
+        for ch in 0..3 {
+            x[k + ch] = 3.0 * grey * (x[k + ch] + e) / (sum + 3.0 * e);
+        }
+    }
+}
+
+/// Normalised depth noise (per cell) above which [`denoise_depth`] filters.
+const DENOISE_MIN_SIGMA: f32 = 0.25;
+
+/// Robust noise level of a depth-cell grid: the median absolute second difference of three
+/// horizontally adjacent valid cells, as a Gaussian sigma per cell. Second differences cancel
+/// the slope of a surface (a table seen from above, a can's side), and edges are a minority of
+/// the triples, so the median reads the sensor's noise rather than the scene's shape. `None`
+/// with too few triples.
+pub fn depth_noise_sigma(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Option<f32> {
+    let f = layout.feature_px;
+    // (-1, 2): the object's depth band with room for noise, not the far background
+    let ok = |k: usize| !mask[k] && x[k] > -1.0 && x[k] < 2.0;
+    let mut d: Vec<f32> = Vec::with_capacity(f * f);
+    for i in 0..f {
+        for j in 1..f - 1 {
+            let k = i * f + j;
+            if ok(k - 1) && ok(k) && ok(k + 1) {
+                d.push((x[k - 1] - 2.0 * x[k] + x[k + 1]).abs());
+            }
+        }
+    }
+    if d.len() < 16 {
+        return None;
+    }
+    let m = d.len() / 2;
+    d.select_nth_unstable_by(m, f32::total_cmp);
+    // a - 2b + c of three N(0, s^2): sigma sqrt(6) s, median |.| 0.6745 sqrt(6) s
+    Some(d[m] / (0.6745 * 6f32.sqrt()))
+}
+
+/// Denoises a grid of normalised depth cells in place, then clamps it to [0, 1].
+///
+/// A far camera's depth noise is large against a small object (5 % of 3 m is 0.15 m, more than
+/// a mug's diameter), so its crops read as noise and their object/background split (which
+/// gates the colour) is random. Where the estimated noise ([`depth_noise_sigma`]) exceeds
+/// `DENOISE_MIN_SIGMA`, a median over a `(2r + 1)^2` window of valid cells replaces each cell,
+/// `r` growing with the noise (1 up to 0.5, else 2). Clean renders are left as they are, so
+/// the templates, the training crops and observed crops all go through the same function.
+pub fn denoise_depth(layout: &FeatureLayout, x: &mut [f32], mask: &[bool]) {
+    let f = layout.feature_px;
+    let sigma = depth_noise_sigma(layout, x, mask).unwrap_or(0.0);
+    if sigma > DENOISE_MIN_SIGMA {
+        let r: i64 = if sigma > 0.5 { 2 } else { 1 };
+        let src = x[..f * f].to_vec();
+        let mut win: Vec<f32> = Vec::with_capacity(((2 * r + 1) * (2 * r + 1)) as usize);
+        for i in 0..f as i64 {
+            for j in 0..f as i64 {
+                let k = (i * f as i64 + j) as usize;
+                if mask[k] {
+                    continue;
+                }
+                win.clear();
+                for di in -r..=r {
+                    for dj in -r..=r {
+                        let (a, b) = (i + di, j + dj);
+                        if a >= 0 && b >= 0 && a < f as i64 && b < f as i64 {
+                            let kk = (a * f as i64 + b) as usize;
+                            if !mask[kk] {
+                                win.push(src[kk]);
+                            }
+                        }
+                    }
+                }
+                let m = win.len() / 2;
+                win.select_nth_unstable_by(m, f32::total_cmp);
+                x[k] = win[m];
+            }
+        }
+    }
+    for v in x[..f * f].iter_mut() {
+        *v = v.clamp(0.0, 1.0);
+    }
+}
+
+/// Fills masked depth cells that are holes (valid on at least three of four sides, a few
+/// passes) from their neighbours; all other missing cells read as far background (1), as in
+/// the renders. A sensor's missing readings are mostly background with no return; a mean
+/// imputation (or filling from any neighbour) would blur the silhouette. Colour cells with no
+/// sample over far background read as background grey when the camera gives colour.
+pub fn inpaint_depth(layout: &FeatureLayout, x: &mut [f32], mask: &mut [bool], has_color: bool) {
+    let f = layout.feature_px;
+    let mut missing: Vec<usize> = (0..f * f).filter(|&k| mask[k]).collect();
+    let mut passes = 0;
+    while !missing.is_empty() && passes < 3 {
+        let mut filled = Vec::new();
+        for &k in &missing {
+            let (i, j) = (k / f, k % f);
+            let mut sum = 0.0;
+            let mut n = 0;
+            for (di, dj) in [(-1i64, 0i64), (1, 0), (0, -1), (0, 1)] {
+                let (a, b) = (i as i64 + di, j as i64 + dj);
+                if a >= 0 && b >= 0 && a < f as i64 && b < f as i64 {
+                    let q = a as usize * f + b as usize;
+                    if !mask[q] {
+                        sum += x[q];
+                        n += 1;
+                    }
+                }
+            }
+            // only holes (valid on three sides or more): the rest is background, read as far
+            if n >= 3 {
+                filled.push((k, sum / n as f32));
+            }
+        }
+        if filled.is_empty() {
+            break;
+        }
+        for (k, v) in &filled {
+            x[*k] = *v;
+            mask[*k] = false;
+        }
+        missing.retain(|k| mask[*k]);
+        passes += 1;
+    }
+    for k in missing {
+        x[k] = 1.0;
+        mask[k] = false;
+    }
+    // colour cells with no sample whose depth is now far background read as background
+    if layout.use_color && has_color {
+        let fc = layout.color_px();
+        let base = layout.depth_len();
+        for ci in 0..fc {
+            for cj in 0..fc {
+                let k0 = base + (ci * fc + cj) * 3;
+                if !mask[k0] {
+                    continue;
+                }
+                let far = layout.depth_cells_under(ci, cj).all(|k| x[k] >= 1.0);
+                if far {
+                    for ch in 0..3 {
+                        x[k0 + ch] = BACKGROUND_GREY * layout.color_weight;
+                        mask[k0 + ch] = false;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Support-plane suppression: fits a plane to the crop's border ring (the object's bounding
+/// circle leaves it free when the crop is centred) and turns every depth cell that lies on or
+/// behind that plane into far background (1), as in the renders; colour cells over far depth
+/// become background grey. A table or floor at the object's depth otherwise reads as object
+/// shape to the linear encoder.
+///
+/// - Fit: least median of squares over deterministic triples of ring cells, refined by least
+///   squares on the inliers (`|r| < 2.5 sigma`, sigma from the median residual). Needs at least
+///   40 % of the ring to be in-range depth and to agree with the plane, else nothing is done
+///   (no plane around the object: free space behind it reads far already; a table so steep
+///   that it saturates most of the ring is left to the encoder, which is trained on such crops
+///   and did better than a fit of those too: `docs/decisions.md`, "Tracker: decisions moved
+///   from the code").
+/// - Test per cell: the residual to the plane averaged over the 3 x 3 neighbourhood (noise of
+///   a single cell is large for far cameras) must not be in front of the plane by more than
+///   `3 sigma / sqrt(neighbours)`. Where the camera gives colour, a cell within that band is
+///   removed only if its colour is close to the ring's median colour too (the table's), so the
+///   low parts of an object lying on the table keep their colour and shape; cells clearly
+///   behind the plane (the floor beyond the table edge) go regardless of colour.
+///
+/// Works on features straight from [`sample_crop`] (masked cells untouched) and returns whether
+/// a plane was found.
+pub fn suppress_support_plane(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has_color: bool) -> bool {
+    suppress_plane_impl(layout, x, mask, has_color, false)
+}
+
+/// [`suppress_support_plane`] that also fits a table so steep that it saturates most of the
+/// ring (the ring's saturated cells then only score the plane) and allows for the affine
+/// model's error over a crop (noise scale at least `MIN_PLANE_SIGMA`). Too eager for the
+/// encoder's input, it answers whether anything stands on the table at all:
+/// see `observation::encode_particles`.
+pub fn suppress_support_plane_steep(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has_color: bool) -> bool {
+    suppress_plane_impl(layout, x, mask, has_color, true)
+}
+
+fn suppress_plane_impl(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has_color: bool, steep: bool) -> bool {
+    let f = layout.feature_px;
+    if f < 8 {
+        return false;
+    }
+    let w = (f / 16).max(1);
+    let coord = |k: usize| -> (f32, f32) {
+        let (i, j) = (k / f, k % f);
+        ((j as f32 + 0.5) / f as f32 - 0.5, (i as f32 + 0.5) / f as f32 - 0.5)
+    };
+    let ring: Vec<usize> = (0..f * f)
+        .filter(|&k| {
+            let (i, j) = (k / f, k % f);
+            i < w || j < w || i >= f - w || j >= f - w
+        })
+        .collect();
+    // valid ring cells; the in-range ones define planes, all of them score planes when
+    // `steep` (against the clamped prediction), the in-range ones alone otherwise
+    let all: Vec<(f32, f32, f32, usize)> = ring
+        .iter()
+        .filter(|&&k| !mask[k])
+        .map(|&k| {
+            let (u, v) = coord(k);
+            (u, v, x[k], k)
+        })
+        .collect();
+    let pts: Vec<(f32, f32, f32, usize)> = all.iter().filter(|p| p.2 > 0.0 && p.2 < 1.0).copied().collect();
+    let need = if steep {
+        (ring.len() * 3) / 20
+    } else {
+        (ring.len() * 2) / 5
+    };
+    if pts.len() < need.max(8) || (steep && all.len() < ring.len() / 2) {
+        return false;
+    }
+    let scored = if steep { &all } else { &pts };
+    let m = pts.len();
+    let residuals = |pl: [f32; 3], out: &mut Vec<f32>| {
+        out.clear();
+        out.extend(scored.iter().map(|(u, v, z, _)| {
+            let p = pl[0] + pl[1] * u + pl[2] * v;
+            (z - if steep { p.clamp(0.0, 1.0) } else { p }).abs()
+        }));
+    };
+    let mut buf = Vec::with_capacity(scored.len());
+    let mut best: Option<([f32; 3], f32)> = None;
+    // deterministic triples spread over the ring
+    for t in 0..48usize {
+        let a = (t * 7919) % m;
+        let b = (a + m / 3 + t * 13) % m;
+        let c = (a + 2 * m / 3 + t * 29) % m;
+        let Some(pl) = plane_through(&pts[a], &pts[b], &pts[c]) else {
+            continue;
+        };
+        residuals(pl, &mut buf);
+        let mid = buf.len() / 2;
+        buf.select_nth_unstable_by(mid, |p, q| p.total_cmp(q));
+        let med = buf[mid];
+        if best.is_none_or(|(_, bm)| med < bm) {
+            best = Some((pl, med));
+        }
+    }
+    let Some((pl, med)) = best else { return false };
+    let sigma0 = if steep {
+        // noise scale from the in-range cells (saturated ones fit exactly)
+        let mut r_in: Vec<f32> = pts
+            .iter()
+            .map(|(u, v, z, _)| (z - (pl[0] + pl[1] * u + pl[2] * v)).abs())
+            .collect();
+        let mid = r_in.len() / 2;
+        r_in.select_nth_unstable_by(mid, |p, q| p.total_cmp(q));
+        (1.4826 * r_in[mid]).max(MIN_PLANE_SIGMA)
+    } else {
+        (1.4826 * med).max(0.01)
+    };
+    // least-squares refinement on the inliers
+    let inl: Vec<&(f32, f32, f32, usize)> = pts
+        .iter()
+        .filter(|(u, v, z, _)| (z - (pl[0] + pl[1] * u + pl[2] * v)).abs() < 2.5 * sigma0)
+        .collect();
+    if inl.len() < need.max(8) || (steep && sigma0 > MAX_PLANE_SIGMA) {
+        return false;
+    }
+    let mut ata = nalgebra::Matrix3::<f64>::zeros();
+    let mut atb = nalgebra::Vector3::<f64>::zeros();
+    for (u, v, z, _) in &inl {
+        let r = nalgebra::Vector3::new(1.0, *u as f64, *v as f64);
+        ata += r * r.transpose();
+        atb += r * *z as f64;
+    }
+    let Some(sol) = ata.try_inverse().map(|i| i * atb) else {
+        return false;
+    };
+    let pl = [sol[0] as f32, sol[1] as f32, sol[2] as f32];
+    let mut res: Vec<f32> = inl
+        .iter()
+        .map(|(u, v, z, _)| (z - (pl[0] + pl[1] * u + pl[2] * v)).abs())
+        .collect();
+    let mid = res.len() / 2;
+    res.select_nth_unstable_by(mid, |p, q| p.total_cmp(q));
+    let sigma = (1.4826 * res[mid]).max(if steep { MIN_PLANE_SIGMA } else { 0.01 });
+    // the table's colour: per-channel median over the inlier ring cells' colour cells
+    let fc = layout.color_px();
+    let cbase = layout.depth_len();
+    let per = (f / fc).max(1);
+    let color_of = |k: usize| -> Option<[f32; 3]> {
+        if !(layout.use_color && has_color) {
+            return None;
+        }
+        let (i, j) = (k / f, k % f);
+        let ck = cbase + ((i / per).min(fc - 1) * fc + (j / per).min(fc - 1)) * 3;
+        if mask[ck] {
+            return None;
+        }
+        Some([x[ck], x[ck + 1], x[ck + 2]])
+    };
+    let table_color: Option<[f32; 3]> = if layout.use_color && has_color {
+        let cols: Vec<[f32; 3]> = inl.iter().filter_map(|(_, _, _, k)| color_of(*k)).collect();
+        if cols.len() >= 8 {
+            let mut c = [0f32; 3];
+            for (ch, cv) in c.iter_mut().enumerate() {
+                let mut v: Vec<f32> = cols.iter().map(|p| p[ch]).collect();
+                let mid = v.len() / 2;
+                v.select_nth_unstable_by(mid, |p, q| p.total_cmp(q));
+                *cv = v[mid];
+            }
+            Some(c)
+        } else {
+            None
+        }
+    } else {
+        None
+    };
+    let color_tol = 0.15 * layout.color_weight;
+    // residual per cell (clamped plane: the features are clamped to [0, 1])
+    let resid: Vec<Option<f32>> = (0..f * f)
+        .map(|k| {
+            if mask[k] {
+                return None;
+            }
+            let (u, v) = coord(k);
+            let p = (pl[0] + pl[1] * u + pl[2] * v).clamp(0.0, 1.0);
+            Some(x[k] - p)
+        })
+        .collect();
+    let mut remove = vec![false; f * f];
+    for k in 0..f * f {
+        if mask[k] || x[k] >= 1.0 {
+            continue;
+        }
+        let (i, j) = ((k / f) as i64, (k % f) as i64);
+        let (mut sum, mut n) = (0.0f32, 0usize);
+        for di in -1..=1i64 {
+            for dj in -1..=1i64 {
+                let (a, b) = (i + di, j + dj);
+                if a >= 0
+                    && b >= 0
+                    && a < f as i64
+                    && b < f as i64
+                    && let Some(r) = resid[a as usize * f + b as usize]
+                {
+                    sum += r;
+                    n += 1;
+                }
+            }
+        }
+        if n == 0 {
+            continue;
+        }
+        let r = sum / n as f32;
+        let tol = 3.0 * sigma / (n as f32).sqrt();
+        if r < -tol {
+            continue; // clearly in front of the plane: object (or an occluder)
+        }
+        let behind = r > tol;
+        let table_like = match (table_color, color_of(k)) {
+            (Some(t), Some(c)) => (0..3).all(|ch| (c[ch] - t[ch]).abs() < color_tol),
+            _ => true,
+        };
+        if behind || table_like {
+            remove[k] = true;
+        }
+    }
+    for (k, r) in remove.iter().enumerate() {
+        if *r {
+            x[k] = 1.0;
+        }
+    }
+    if layout.use_color && has_color {
+        for ci in 0..fc {
+            for cj in 0..fc {
+                let k0 = cbase + (ci * fc + cj) * 3;
+                if mask[k0] {
+                    continue;
+                }
+                let far = (0..per).all(|a| {
+                    (0..per).all(|b| {
+                        let k = (ci * per + a) * f + cj * per + b;
+                        mask[k] || x[k] >= 1.0
+                    })
+                });
+                let any_removed = (0..per).any(|a| (0..per).any(|b| remove[(ci * per + a) * f + cj * per + b]));
+                if far && any_removed {
+                    for ch in 0..3 {
+                        x[k0 + ch] = BACKGROUND_GREY * layout.color_weight;
+                    }
+                }
+            }
+        }
+    }
+    true
+}
+
+/// The plane `z = a + b u + c v` through three points, `None` when they are collinear.
+fn plane_through(
+    p: &(f32, f32, f32, usize),
+    q: &(f32, f32, f32, usize),
+    r: &(f32, f32, f32, usize),
+) -> Option<[f32; 3]> {
+    let m = nalgebra::Matrix3::new(1.0, p.0, p.1, 1.0, q.0, q.1, 1.0, r.0, r.1);
+    let inv = m.try_inverse()?;
+    let s = inv * nalgebra::Vector3::new(p.2, q.2, r.2);
+    (s.iter().all(|v| v.is_finite()) && m.determinant().abs() > 1e-4).then(|| [s[0], s[1], s[2]])
+}
+
+/// Lower-quartile normalised depth of the central half of a crop's depth cells that lie strictly
+/// inside the normalisation box (the object's visible surface near its centre); `None` when
+/// no such cell is valid. Compared between an observed crop and its best template, it gives a
+/// depth error in box units: `(observed - template) * box_m` metres.
+pub fn central_median_depth(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Option<f32> {
+    let f = layout.feature_px;
+    let mut v: Vec<f32> = Vec::with_capacity(f * f / 4);
+    for i in f / 4..f - f / 4 {
+        for j in f / 4..f - f / 4 {
+            let k = i * f + j;
+            if !mask[k] && x[k] > 0.0 && x[k] < 1.0 {
+                v.push(x[k]);
+            }
+        }
+    }
+    if v.len() < 3 {
+        return None;
+    }
+    // the lower quartile: the object's front surface; a table or wall behind the object only
+    // adds larger values
+    let q = v.len() / 4;
+    v.select_nth_unstable_by(q, |a, b| a.total_cmp(b));
+    Some(v[q])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+
+    /// A 32 x 32 crop: a tilted table (depth grows `slope` boxes across the crop, with noise)
+    /// and a block standing on it in the centre, in front of the table by 0.1..0.4 box.
+    fn table_crop(
+        with_color: bool,
+        noise: f32,
+        seed: u64,
+        slope: f32,
+    ) -> (FeatureLayout, Vec<f32>, Vec<bool>, Vec<bool>) {
+        let layout = FeatureLayout {
+            feature_px: 32,
+            use_color: with_color,
+            color_weight: 0.7,
+            chromaticity: false,
+        };
+        let f = 32;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let n = Normal::new(0.0f32, noise.max(1e-6)).unwrap();
+        let mut x = vec![0f32; layout.dim()];
+        let mask = vec![false; layout.dim()];
+        let mut object = vec![false; f * f];
+        for i in 0..f {
+            for j in 0..f {
+                let v = (i as f32 + 0.5) / f as f32 - 0.5;
+                let table = 0.5 - slope * v; // nearer at the bottom of the image
+                let k = i * f + j;
+                let inside = (10..22).contains(&i) && (11..21).contains(&j);
+                object[k] = inside;
+                let z = if inside {
+                    table - 0.1 - 0.3 * (i as f32 - 10.0) / 12.0
+                } else {
+                    table
+                };
+                x[k] = (z + n.sample(&mut rng)).clamp(0.0, 1.0);
+            }
+        }
+        if with_color {
+            let fc = layout.color_px();
+            for ci in 0..fc {
+                for cj in 0..fc {
+                    let k = (2 * ci) * f + 2 * cj;
+                    let c = if object[k] { [0.9, 0.8, 0.1] } else { [0.5, 0.3, 0.2] };
+                    for ch in 0..3 {
+                        x[f * f + (ci * fc + cj) * 3 + ch] = c[ch] * 0.7;
+                    }
+                }
+            }
+        }
+        (layout, x, mask, object)
+    }
+
+    /// A 32 x 32 depth grid (unclamped, normalised): a block at 0.3 in front of a plane at
+    /// 0.7, plus Gaussian noise.
+    fn block_cells(noise: f32, seed: u64) -> (FeatureLayout, Vec<f32>, Vec<f32>) {
+        let layout = FeatureLayout {
+            feature_px: 32,
+            use_color: false,
+            color_weight: 1.0,
+            chromaticity: false,
+        };
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let n = Normal::new(0.0f32, noise.max(1e-6)).unwrap();
+        let truth: Vec<f32> = (0..32 * 32)
+            .map(|k| {
+                let (i, j) = (k / 32, k % 32);
+                if (8..24).contains(&i) && (10..22).contains(&j) {
+                    0.3
+                } else {
+                    0.7
+                }
+            })
+            .collect();
+        let noisy = truth.iter().map(|t| t + n.sample(&mut rng)).collect();
+        (layout, truth, noisy)
+    }
+
+    fn rms(a: &[f32], b: &[f32]) -> f32 {
+        (a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum::<f32>() / a.len() as f32).sqrt()
+    }
+
+    #[test]
+    fn depth_noise_is_estimated_despite_the_edges() {
+        for sigma in [0.1f32, 0.4, 0.9] {
+            let (layout, _, noisy) = block_cells(sigma, 5);
+            let est = depth_noise_sigma(&layout, &noisy, &[false; 1024]).unwrap();
+            assert!((est / sigma - 1.0).abs() < 0.25, "sigma {sigma}: estimated {est}");
+        }
+        let (layout, truth, _) = block_cells(0.0, 5);
+        assert!(depth_noise_sigma(&layout, &truth, &[false; 1024]).unwrap() < 0.01);
+    }
+
+    #[test]
+    fn far_camera_noise_is_filtered_and_clean_crops_are_left_alone() {
+        let mask = [false; 1024];
+        for (sigma, max_ratio) in [(0.4f32, 0.6f32), (0.9, 0.55)] {
+            let (layout, truth, mut x) = block_cells(sigma, 11);
+            let clamped_truth: Vec<f32> = truth.iter().map(|v| v.clamp(0.0, 1.0)).collect();
+            let before = rms(&x.iter().map(|v| v.clamp(0.0, 1.0)).collect::<Vec<_>>(), &clamped_truth);
+            denoise_depth(&layout, &mut x, &mask);
+            assert!(x.iter().all(|v| (0.0..=1.0).contains(v)));
+            let after = rms(&x, &clamped_truth);
+            assert!(after < max_ratio * before, "sigma {sigma}: rms {before} -> {after}");
+        }
+        // a clean render (sharp edges, no noise) and a near camera's crop are left as they are
+        for sigma in [0.0f32, 0.1] {
+            let (layout, _, noisy) = block_cells(sigma, 1);
+            let mut x = noisy.clone();
+            denoise_depth(&layout, &mut x, &mask);
+            let clamped: Vec<f32> = noisy.iter().map(|v| v.clamp(0.0, 1.0)).collect();
+            assert_eq!(x, clamped, "sigma {sigma}");
+        }
+    }
+
+    #[test]
+    fn colour_of_a_small_far_object_survives_its_depth_noise() {
+        // a 0.13 m object 3 m away, 5 % depth noise (1.15 boxes per pixel): the colour cells
+        // over the object must read the object's colour, not the background grey
+        let (w, h) = (64u32, 64u32);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2);
+        let noise = Normal::new(0.0f32, 0.15).unwrap();
+        let mut depth = DepthImage {
+            width: w,
+            height: h,
+            data_m: vec![0.0; (w * h) as usize],
+        };
+        let mut color = ColorImage {
+            width: w,
+            height: h,
+            data: vec![[40, 40, 40]; (w * h) as usize],
+        };
+        for y in 0..h {
+            for x in 0..w {
+                let k = (y * w + x) as usize;
+                let object = (24..40).contains(&x) && (24..40).contains(&y);
+                let z = if object { 3.0 } else { 3.6 };
+                depth.data_m[k] = z + noise.sample(&mut rng);
+                if object {
+                    color.data[k] = [230, 30, 30];
+                }
+            }
+        }
+        let layout = FeatureLayout {
+            feature_px: 32,
+            use_color: true,
+            color_weight: 1.0,
+            chromaticity: false,
+        };
+        let p = CropParams {
+            centre_px: [32.0, 32.0],
+            side_px: 32.0,
+            rotation_rad: 0.0,
+            z_centre_m: 3.0,
+            box_m: 0.13,
+            zero_is_far: false,
+        };
+        let mut x = vec![0f32; layout.dim()];
+        let mut m = vec![false; layout.dim()];
+        sample_crop(&layout, &depth, Some(&color), &p, &mut x, &mut m);
+        let fc = layout.color_px();
+        let base = layout.depth_len();
+        // colour cells well inside the object (the object spans cells 4..12 of 16)
+        let (mut red, mut all) = (0, 0);
+        for ci in 5..11 {
+            for cj in 5..11 {
+                all += 1;
+                // the object's red is 0.9; a grey (0.5) sub-sample in the cell pulls it below
+                if x[base + (ci * fc + cj) * 3] > 0.85 {
+                    red += 1;
+                }
+            }
+        }
+        assert!(
+            red as f64 > 0.8 * all as f64,
+            "{red} of {all} object colour cells read the object"
+        );
+    }
+
+    #[test]
+    fn support_plane_is_removed_and_the_object_kept() {
+        for (with_color, noise) in [(false, 0.02), (true, 0.02), (true, 0.15)] {
+            let (layout, mut x, mask, object) = table_crop(with_color, noise, 3, 0.9);
+            assert!(suppress_support_plane(&layout, &mut x, &mask, with_color));
+            let f = 32;
+            let table_cells: Vec<usize> = (0..f * f).filter(|&k| !object[k]).collect();
+            // table cells near the object's bottom edge are allowed to stay (its contact line)
+            let removed = table_cells.iter().filter(|&&k| x[k] >= 1.0).count();
+            let kept = (0..f * f).filter(|&k| object[k] && x[k] < 1.0).count();
+            let n_obj = object.iter().filter(|o| **o).count();
+            assert!(
+                removed as f64 > 0.9 * table_cells.len() as f64,
+                "colour {with_color} noise {noise}: {removed} of {} table cells removed",
+                table_cells.len()
+            );
+            assert!(
+                kept as f64 > 0.8 * n_obj as f64,
+                "colour {with_color} noise {noise}: {kept} of {n_obj} object cells kept"
+            );
+            if with_color {
+                // the table's colour became background grey, the object's colour stayed
+                let fc = layout.color_px();
+                let c_table = f * f;
+                assert_eq!(x[c_table], BACKGROUND_GREY * 0.7);
+                let c_obj = f * f + (8 * fc + 8) * 3;
+                assert!((x[c_obj] - 0.9 * 0.7).abs() < 1e-6);
+            }
+        }
+    }
+
+    #[test]
+    fn a_steep_table_is_found_by_the_steep_fit_only() {
+        // 2 boxes of depth over the crop: most of the ring saturates near or far
+        let (layout, x, mask, object) = table_crop(false, 0.02, 5, 2.0);
+        let mut flat = x.clone();
+        assert!(!suppress_support_plane(&layout, &mut flat, &mask, false));
+        let mut steep = x.clone();
+        assert!(suppress_support_plane_steep(&layout, &mut steep, &mask, false));
+        let f = 32;
+        let table_left = (0..f * f).filter(|&k| !object[k] && steep[k] < 1.0).count();
+        let object_kept = (0..f * f).filter(|&k| object[k] && steep[k] < 1.0).count();
+        assert!(table_left < 60, "{table_left} of about 900 table cells left");
+        assert!(object_kept > 60, "{object_kept} object cells kept");
+    }
+
+    #[test]
+    fn no_plane_in_free_space() {
+        // the object in front of far background: the ring reads far, nothing is fitted
+        let (layout, mut x, mask, object) = table_crop(false, 0.0, 1, 0.9);
+        for (k, o) in object.iter().enumerate() {
+            if !o {
+                x[k] = 1.0;
+            }
+        }
+        let before = x.clone();
+        assert!(!suppress_support_plane(&layout, &mut x, &mask, false));
+        assert_eq!(x, before);
+    }
+}
