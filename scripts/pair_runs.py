@@ -44,6 +44,7 @@ def main():
     if not keys:
         raise SystemExit("no frame in common")
     differ = 0
+    differ_by_object = {}
     per_seq = {}
     for k in keys:
         ea, eb = a[k], b[k]
@@ -53,7 +54,11 @@ def main():
             apart = angle_deg(qa, qb) > args.mode_deg
         else:
             apart = abs(ea["symmetric_error_deg"] - eb["symmetric_error_deg"]) > args.mode_deg
-        differ += apart and not both_right
+        d = apart and not both_right
+        differ += d
+        o = differ_by_object.setdefault(k[1], [0, 0])
+        o[0] += d
+        o[1] += 1
         la, lb = ea.get("gt_orientation_loglik"), eb.get("gt_orientation_loglik")
         if la is not None and lb is not None:
             per_seq.setdefault(k[0], []).append(lb - la)
@@ -68,6 +73,7 @@ def main():
         "frames_paired": len(keys),
         "sequences": len(seq_means),
         "top_mode_differs_share": differ / len(keys),
+        "top_mode_differs_by_object": {o: v[0] / v[1] for o, v in sorted(differ_by_object.items())},
         "loglik_diff_b_minus_a_mean": mean,
         "loglik_diff_95ci": [lo, hi],
         "a_mean_symmetric_error_deg": sum(a[k]["symmetric_error_deg"] for k in keys) / len(keys),

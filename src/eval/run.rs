@@ -749,7 +749,9 @@ pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>
             (outside as f64 / audited as f64).into(),
         );
     }
-    if let Some(g) = store.reference_gemm_s(3 * tc.particles_from_robot_camera.max(1)) {
+    // the matching's shape: three views of the robot camera's and two external cameras' particles
+    let rows = 3 * (tc.particles_from_robot_camera + 2 * tc.particles_per_external_camera).max(1);
+    if let Some(g) = store.reference_gemm_s(rows) {
         settings.insert("dense_matching_gemm_s".into(), g.into());
     }
     settings.insert(

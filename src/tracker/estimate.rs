@@ -530,7 +530,15 @@ mod tests {
             column_of: vec![0, 1, 2],
         };
         let mut sparse = dense.clone();
-        sparse.prune(&tables, 1e-6, 1.0, usize::MAX);
+        sparse.prune(
+            &tables,
+            &crate::tracker::sparse::PruneRule {
+                floor_rel: 1e-6,
+                margin: 1.0,
+                tail_mass: 0.0,
+                max_active: usize::MAX,
+            },
+        );
         assert_eq!(sparse.active, vec![5, 7, 2000, nb as u32 - 1]);
         for rot in [&dense, &sparse] {
             let set = ParticleSet {

@@ -110,6 +110,10 @@ pub struct MatchingConfig {
     /// A bin stays active while some column's density there is above this many times the
     /// column's floor (or the prior floor): the rest of a plateau goes to the floor.
     pub keep_above_floor: f32,
+    /// Then the lowest-density active bins go back to the floor while their mass over it adds
+    /// up to at most this much in every histogram.
+    #[serde(default = "default_tail_mass")]
+    pub tail_mass: f32,
     /// Most active bins per track (the highest peak densities are kept).
     pub max_active_bins: usize,
     /// Also find, at every step, the bin of the whole grid where the heaviest particle's
@@ -119,6 +123,22 @@ pub struct MatchingConfig {
     pub audit: bool,
 }
 
+fn default_tail_mass() -> f32 {
+    1e-3
+}
+
+impl MatchingConfig {
+    /// The pruning rule of these settings over a prior floor of `floor_rel`.
+    pub fn prune_rule(&self, floor_rel: f64) -> crate::tracker::sparse::PruneRule {
+        crate::tracker::sparse::PruneRule {
+            floor_rel: floor_rel as f32,
+            margin: self.keep_above_floor,
+            tail_mass: self.tail_mass,
+            max_active: self.max_active_bins,
+        }
+    }
+}
+
 impl Default for MatchingConfig {
     fn default() -> Self {
         Self {
@@ -126,6 +146,7 @@ impl Default for MatchingConfig {
             refine_cells: 48,
             slice_steps: 30,
             keep_above_floor: 2.0,
+            tail_mass: default_tail_mass(),
             max_active_bins: 16_000,
             audit: false,
         }
@@ -479,11 +500,17 @@ impl Tracker {
         report.timings.motion_s += t0.elapsed().as_secs_f64();
         let t0 = Instant::now();
         let kernel = gaussian_kernel(self.config.blur_radius_bins, self.config.blur_sigma_bins);
+        let matching = self.config.matching;
+        let rule = matching.prune_rule(self.config.prior_floor_rel);
         for s in &mut self.states {
             if s.n() > 0 {
-                // the blur preserves each histogram's mass: no renormalisation needed
                 let tables = &self.models[s.model].tables;
                 crate::tracker::sparse::blur(&mut s.rot, tables, &kernel, &mut self.blur_work);
+                // the halo's bins that stay near the floor go back to it: only the rest is
+                // matched at this step
+                if !matching.dense {
+                    s.rot.prune(tables, &rule);
+                }
             }
         }
         report.timings.blur_s += t0.elapsed().as_secs_f64();

@@ -218,11 +218,15 @@ impl RotationState {
         self.column_of = column_of;
     }
 
-    /// Drops the bins where no column holds more than `margin` times `max(its floor,
-    /// floor_rel)` times the bin's volume (they go to the floor: the next update's prior is at
-    /// least `floor_rel` there anyway); keeps at most `max_active` bins (the highest peak
-    /// density first); sorts the bins and renormalises each column.
-    pub fn prune(&mut self, tables: &GridTables, floor_rel: f32, margin: f32, max_active: usize) {
+    /// Sends bins back to the floor (see [`PruneRule`]); sorts the bins and renormalises each
+    /// column.
+    pub fn prune(&mut self, tables: &GridTables, rule: &PruneRule) {
+        let PruneRule {
+            floor_rel,
+            margin,
+            tail_mass,
+            max_active,
+        } = *rule;
         let nc = self.n_cols();
         if nc == 0 {
             self.active.clear();
@@ -242,6 +246,30 @@ impl RotationState {
                 (peak > margin).then_some((*b, peak, a))
             })
             .collect();
+        if tail_mass > 0.0 && !keep.is_empty() {
+            // the lowest-density bins whose excess over the floor adds up to at most
+            // `tail_mass` in every column go too
+            keep.par_sort_unstable_by(|x, y| x.1.total_cmp(&y.1));
+            let mut acc = vec![0f32; nc];
+            let mut cut = 0;
+            for (b, _, a) in &keep {
+                let vol = tables.volume(*b as usize) as f32;
+                let row = &self.values[a * nc..(a + 1) * nc];
+                let over = row
+                    .iter()
+                    .zip(&lvl)
+                    .zip(&acc)
+                    .any(|((v, l), m)| m + (v - l * vol).max(0.0) > tail_mass);
+                if over {
+                    break;
+                }
+                for ((m, v), l) in acc.iter_mut().zip(row).zip(&lvl) {
+                    *m += (v - l * vol).max(0.0);
+                }
+                cut += 1;
+            }
+            keep.drain(..cut);
+        }
         if keep.len() > max_active {
             keep.select_nth_unstable_by(max_active - 1, |x, y| y.1.total_cmp(&x.1));
             keep.truncate(max_active);
@@ -260,6 +288,21 @@ impl RotationState {
     pub fn bytes(&self) -> usize {
         self.active.len() * 4 + self.values.len() * 4 + self.floors.len() * 4 + self.column_of.len() * 4
     }
+}
+
+/// Which bins [`RotationState::prune`] sends back to the floor.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PruneRule {
+    /// The prior's floor (relative to a bin's volume): no column goes below it at an update.
+    pub floor_rel: f32,
+    /// A bin stays while some column holds more than this many times `max(its floor,
+    /// floor_rel)` times the bin's volume.
+    pub margin: f32,
+    /// Then the lowest-density bins go while their excess over the floor adds up to at most
+    /// this much mass in every column.
+    pub tail_mass: f32,
+    /// At most this many bins stay (the highest peak densities).
+    pub max_active: usize,
 }
 
 /// The coarse lattice of a grid and each fine bin's cell.
@@ -743,7 +786,13 @@ mod tests {
         assert_eq!(s.column_of, vec![0, 0, 1, 0]);
         assert_eq!(s.values[1], s.values[0] * 2.0);
         // pruning with a high floor drops everything and leaves unit mass
-        s.prune(&tables, 1e6, 1.0, usize::MAX);
+        let rule = PruneRule {
+            floor_rel: 1e6,
+            margin: 1.0,
+            tail_mass: 0.0,
+            max_active: usize::MAX,
+        };
+        s.prune(&tables, &rule);
         assert!(s.active.is_empty());
         for m in s.column_masses(&tables) {
             assert!((m - 1.0).abs() < 1e-4);

@@ -391,10 +391,8 @@ impl Tracker {
             self.resample(ti);
         }
         if !matching.dense {
-            let floor_rel = self.config.prior_floor_rel as f32;
-            self.states[ti]
-                .rot
-                .prune(&tables, floor_rel, matching.keep_above_floor, matching.max_active_bins);
+            let rule = matching.prune_rule(self.config.prior_floor_rel);
+            self.states[ti].rot.prune(&tables, &rule);
         } else if had_evidence {
             // the dense reference keeps every bin, in order
             let s = &mut self.states[ti];
