@@ -162,6 +162,25 @@ std::thread_local! {
     static BLUR_WORK: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
+/// Per elevation row `j`, the kernel's weight that lands on rows that exist: the elevation
+/// blur divides row `j`'s taps by it, so each source row keeps its mass at the poles.
+pub fn elevation_row_sums(kernel: &[f32], ne: usize) -> Vec<f32> {
+    let r = (kernel.len() / 2) as isize;
+    (0..ne as isize)
+        .map(|j| {
+            kernel
+                .iter()
+                .enumerate()
+                .filter(|(k, _)| {
+                    let e = j - (*k as isize - r);
+                    e >= 0 && e < ne as isize
+                })
+                .map(|(_, w)| *w)
+                .sum()
+        })
+        .collect()
+}
+
 /// Separable Gaussian blur of `n_p` histograms (bin-major layout) with `kernel`: azimuth and
 /// in-plane wrap around (they are angles), elevation is truncated at the poles with the kernel
 /// renormalised so that each source row keeps its mass. `scratch` is resized as needed and
@@ -195,19 +214,7 @@ pub fn blur(grid: &RotationGrid, h: &mut Vec<f32>, n_p: usize, kernel: &[f32], s
     };
     let inplane_offsets = wrapped(ni, n_p);
     let azimuth_offsets = wrapped(na, row_len);
-    // elevation: each source row spreads its mass over the rows that exist
-    let row_sum = |j: usize| -> f32 {
-        kernel
-            .iter()
-            .enumerate()
-            .filter(|(k, _)| {
-                let e = j as isize - (*k as isize - r as isize);
-                e >= 0 && e < ne as isize
-            })
-            .map(|(_, w)| *w)
-            .sum()
-    };
-    let row_sums: Vec<f32> = (0..ne).map(row_sum).collect();
+    let row_sums = elevation_row_sums(kernel, ne);
     scratch.resize(h.len(), 0.0);
     let src: &[f32] = h;
     let blocks = (rayon::current_num_threads() * 2).clamp(1, ne);
@@ -320,18 +327,8 @@ pub fn blur_reference(grid: &RotationGrid, h: &mut Vec<f32>, n_p: usize, kernel:
     scratch.resize(h.len(), 0.0);
     std::mem::swap(h, scratch);
     let src: &[f32] = scratch;
-    // mass-preserving: each source row spreads its mass over the rows that exist
-    let row_sum = |j: isize| -> f32 {
-        kernel
-            .iter()
-            .enumerate()
-            .filter(|(k, _)| {
-                let e = j - (*k as isize - r);
-                e >= 0 && e < ne as isize
-            })
-            .map(|(_, w)| *w)
-            .sum()
-    };
+    let row_sums = elevation_row_sums(kernel, ne);
+    let row_sum = |j: isize| -> f32 { row_sums[j as usize] };
     h.par_chunks_mut(slab).enumerate().for_each(|(e, dst)| {
         dst.fill(0.0);
         for (k, &w) in kernel.iter().enumerate() {

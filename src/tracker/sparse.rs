@@ -642,19 +642,7 @@ fn blur_pass(
         }
     };
     // elevation: source row j spreads its mass over the rows that exist
-    let row_sums: Vec<f32> = (0..ne as isize)
-        .map(|j| {
-            kernel
-                .iter()
-                .enumerate()
-                .filter(|(k, _)| {
-                    let e = j - (*k as isize - r);
-                    e >= 0 && e < ne as isize
-                })
-                .map(|(_, w)| *w)
-                .sum()
-        })
-        .collect();
+    let row_sums = crate::tracker::kernels::elevation_row_sums(kernel, ne);
     let gen_in = work.next(grid.len());
     for (s, b) in bins.iter().enumerate() {
         work.stamp[*b as usize] = gen_in;
