@@ -25,6 +25,29 @@ struct Encoded {
     dense_map: Option<Arc<Vec<u32>>>,
 }
 
+impl Encoded {
+    /// This view's evidence from its similarities on the matched set (`sim`, moved into the
+    /// evidence when the view sees the object) and each particle's best similarity and bin.
+    fn evidence(
+        &self,
+        codebook: &crate::tracker::Codebook,
+        sim: &mut Vec<f32>,
+        best: &(Vec<f32>, Vec<u32>),
+        config: &crate::tracker::observation::ObservationConfig,
+    ) -> Option<ViewEvidence> {
+        view_evidence(
+            codebook,
+            sim,
+            &best.0,
+            &best.1,
+            &self.valid,
+            &self.central_depth,
+            &self.positions_in_view_m,
+            config,
+        )
+    }
+}
+
 /// Sorted union of the sorted lists `a`, `b` and the range `slice` (wrapping at `nb`); with
 /// each output's slot in `a` (`u32::MAX`: none) and the output index of each element of `b`.
 fn merge(a: &[u32], b: &[u32], slice: (usize, usize), nb: usize) -> (Vec<u32>, Vec<u32>, Vec<u32>) {
@@ -178,19 +201,9 @@ impl Tracker {
                 .iter()
                 .zip(&best)
                 .zip(sims.iter_mut())
-                .filter_map(|((e, (mx, arg)), sim)| {
+                .filter_map(|((e, b), sim)| {
                     let mut copy = std::mem::take(sim);
-                    let ev = view_evidence(
-                        &codebook,
-                        &mut copy,
-                        mx,
-                        arg,
-                        &e.valid,
-                        &e.central_depth,
-                        &e.positions_in_view_m,
-                        &obs_cfg,
-                    );
-                    match ev {
+                    match e.evidence(&codebook, &mut copy, b, &obs_cfg) {
                         Some(ev) => Some(ev),
                         None => {
                             *sim = copy;
@@ -257,17 +270,8 @@ impl Tracker {
         let mut seen_by = Vec::new();
         let mut best_sim = f32::NEG_INFINITY;
         let mut depth_log = vec![0f32; n];
-        for (k, ((e, (mx, arg)), mut sim)) in encoded.iter().zip(&best).zip(sims).enumerate() {
-            match view_evidence(
-                &codebook,
-                &mut sim,
-                mx,
-                arg,
-                &e.valid,
-                &e.central_depth,
-                &e.positions_in_view_m,
-                &obs_cfg,
-            ) {
+        for (k, ((e, b), mut sim)) in encoded.iter().zip(&best).zip(sims).enumerate() {
+            match e.evidence(&codebook, &mut sim, b, &obs_cfg) {
                 Some(ev) => {
                     best_sim = best_sim.max(ev.best_similarity);
                     seen_by.push(e.camera.clone());
