@@ -307,7 +307,12 @@ fn a_lost_track_is_reinitialised_from_the_next_detection() {
     let cam = look_at([-0.9, -0.2, 0.7], [0.0, 0.0, 0.08]);
     let mut cams = BTreeMap::new();
     cams.insert("ext1".to_string(), CameraMount::Stationary { world_from_camera: cam });
-    let mut tracker = Tracker::new(TrackerConfig::default(), cams, "ext1".into());
+    // two instances of one object, each its own track
+    let config = TrackerConfig {
+        max_tracks_per_object: 0,
+        ..TrackerConfig::default()
+    };
+    let mut tracker = Tracker::new(config, cams, "ext1".into());
     tracker.add_object_model("box", mesh.clone(), cb);
     let a = on_table(&mesh, 0.0, -0.2, 0.3);
     let b = on_table(&mesh, 0.0, 0.25, 1.2);

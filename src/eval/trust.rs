@@ -371,6 +371,7 @@ mod tests {
                     rot: &self.rot,
                     tables: &self.tables,
                     reference_from_hist: Pose::identity(),
+                    spread: crate::tracker::estimate::SpreadConfig::NONE,
                 }
             }
 

@@ -42,6 +42,50 @@ impl Default for EstimateConfig {
     }
 }
 
+/// Regularised resampling of the translation particles (Musso et al.'s regularised particle
+/// filter with Liu and West's shrinkage): after resampling, each component's particles are
+/// pulled towards its mean by `a = sqrt(1 - h^2)` and jittered by `N(0, h^2 S)` with `S` the
+/// component's covariance, which keeps its mean and covariance while copies of one ancestor
+/// become distinct hypotheses. Then a component narrower than `floor_m + floor_per_m * range`
+/// (isotropic) is jittered up to it: the crops cannot place an object more finely than the
+/// depth noise and the codebook's crop alignment allow, and a collapsed cloud reports a
+/// spread far below its error.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SpreadConfig {
+    /// Kernel bandwidth `h` relative to the component's spread (0: plain resampling).
+    pub bandwidth: f64,
+    /// Smallest per-axis standard deviation of a component, metres, plus `floor_per_m` times
+    /// the component's distance from the reference camera.
+    pub floor_m: f64,
+    pub floor_per_m: f64,
+}
+
+impl SpreadConfig {
+    /// No regularisation and no floor: the particles as they are.
+    pub const NONE: Self = Self {
+        bandwidth: 0.0,
+        floor_m: 0.0,
+        floor_per_m: 0.0,
+    };
+
+    /// The isotropic standard deviation to add to a component of covariance `cov` whose mean
+    /// is `mean` (reference frame) to bring it up to the floor.
+    pub fn extra_std_m(&self, mean: &Vector3<f64>, cov: &Matrix3<f64>) -> f64 {
+        let floor = self.floor_m + self.floor_per_m * mean.norm();
+        (floor * floor - cov.trace() / 3.0).max(0.0).sqrt()
+    }
+}
+
+impl Default for SpreadConfig {
+    fn default() -> Self {
+        Self {
+            bandwidth: 0.3,
+            floor_m: 0.004,
+            floor_per_m: 0.006,
+        }
+    }
+}
+
 /// Bins per chunk of the sampler's prefix sums.
 const SAMPLE_CHUNK_BINS: usize = 1024;
 
@@ -57,6 +101,9 @@ pub struct ParticleSet<'a> {
     /// The histograms' frame `H` (the reference camera when the track started): positions are
     /// in the current reference frame, bins are allocentric in `H`.
     pub reference_from_hist: Pose,
+    /// The floor on each component's spread (see [`SpreadConfig`]): the reported components,
+    /// covariance and samples include it.
+    pub spread: SpreadConfig,
 }
 
 impl ParticleSet<'_> {
@@ -92,31 +139,16 @@ impl ParticleSet<'_> {
     pub fn components(&self, camera_names: &[String]) -> Vec<Component> {
         let mut out = Vec::new();
         for (ci, name) in camera_names.iter().enumerate() {
-            let idx: Vec<usize> = (0..self.n()).filter(|&i| self.sources[i] == ci).collect();
-            if idx.is_empty() {
+            if !self.sources.contains(&ci) {
                 continue;
             }
-            let w: f64 = idx.iter().map(|&i| self.weights[i]).sum();
-            let mut mean = Vector3::zeros();
-            for &i in &idx {
-                mean += self.positions_m[i]
-                    * if w > 0.0 {
-                        self.weights[i] / w
-                    } else {
-                        1.0 / idx.len() as f64
-                    };
-            }
-            let mut cov = Matrix3::zeros();
-            for &i in &idx {
-                let d = self.positions_m[i] - mean;
-                cov += d
-                    * d.transpose()
-                    * if w > 0.0 {
-                        self.weights[i] / w
-                    } else {
-                        1.0 / idx.len() as f64
-                    };
-            }
+            let w: f64 = (0..self.n())
+                .filter(|&i| self.sources[i] == ci)
+                .map(|i| self.weights[i])
+                .sum();
+            let (mean, cov) = component_moments(self.positions_m, self.weights, self.sources, ci);
+            let extra = self.spread.extra_std_m(&mean, &cov);
+            let cov = cov + Matrix3::identity() * (extra * extra);
             let mut c = [[0.0; 3]; 3];
             for (r, row) in c.iter_mut().enumerate() {
                 for (k, v) in row.iter_mut().enumerate() {
@@ -133,7 +165,8 @@ impl ParticleSet<'_> {
         out
     }
 
-    /// Translation covariance of all particles and the RMS distance from the mean.
+    /// Translation covariance of all particles (each component's floor included, see
+    /// [`SpreadConfig`]) and the RMS distance from the mean.
     pub fn translation_covariance(&self) -> (Matrix3<f64>, f64) {
         let m = self.mean_position();
         let mut cov = Matrix3::zeros();
@@ -141,7 +174,28 @@ impl ParticleSet<'_> {
             let d = p - m;
             cov += d * d.transpose() * *w;
         }
+        for (c, _, extra) in self.component_floors() {
+            let wc: f64 = (0..self.n())
+                .filter(|&i| self.sources[i] == c)
+                .map(|i| self.weights[i])
+                .sum();
+            cov += Matrix3::identity() * (wc * extra * extra);
+        }
         (cov, cov.trace().max(0.0).sqrt())
+    }
+
+    /// Per source camera: its index, its weighted mean and the standard deviation its floor
+    /// adds (see [`SpreadConfig`]).
+    fn component_floors(&self) -> Vec<(usize, Vector3<f64>, f64)> {
+        let mut cams = self.sources.to_vec();
+        cams.sort_unstable();
+        cams.dedup();
+        cams.into_iter()
+            .map(|c| {
+                let (mean, cov) = component_moments(self.positions_m, self.weights, self.sources, c);
+                (c, mean, self.spread.extra_std_m(&mean, &cov))
+            })
+            .collect()
     }
 
     /// Natural log of the mixture mass of the bin holding `reference_from_object` (each
@@ -252,6 +306,7 @@ impl ParticleSet<'_> {
             racc += v * per_row;
             row_cdf.push(racc);
         }
+        let floors = self.component_floors();
         let mut poses = Vec::with_capacity(count);
         let s = grid.step_rad();
         for _ in 0..count {
@@ -305,7 +360,13 @@ impl ParticleSet<'_> {
             let e = (e + (rng.random::<f64>() - 0.5) * s).clamp(0.0, std::f64::consts::PI);
             let a = a + (rng.random::<f64>() - 0.5) * s;
             let t = t + (rng.random::<f64>() - 0.5) * s;
-            let pos = self.positions_m[p];
+            let jitter = floors.iter().find(|f| f.0 == self.sources[p]).map_or(0.0, |f| f.2);
+            let pos = self.positions_m[p]
+                + if jitter > 0.0 {
+                    Vector3::from_fn(|_, _| rng.sample::<f64, _>(rand_distr::StandardNormal) * jitter)
+                } else {
+                    Vector3::zeros()
+                };
             let t_h = self
                 .reference_from_hist
                 .inverse_transform_point(&Point3::from(pos))
@@ -319,6 +380,33 @@ impl ParticleSet<'_> {
             effective_sample_size: ess.min(count as f64),
         }
     }
+}
+
+/// Weighted mean and covariance of the particles of camera `c`.
+pub fn component_moments(
+    positions: &[Vector3<f64>],
+    weights: &[f64],
+    sources: &[usize],
+    c: usize,
+) -> (Vector3<f64>, nalgebra::Matrix3<f64>) {
+    let idx: Vec<usize> = (0..positions.len()).filter(|&i| sources[i] == c).collect();
+    let w: f64 = idx.iter().map(|&i| weights[i]).sum();
+    let wi = |i: usize| {
+        if w > 0.0 {
+            weights[i] / w
+        } else {
+            1.0 / idx.len() as f64
+        }
+    };
+    let mean: Vector3<f64> = idx.iter().map(|&i| positions[i] * wi(i)).sum();
+    let cov = idx
+        .iter()
+        .map(|&i| {
+            let d = positions[i] - mean;
+            d * d.transpose() * wi(i)
+        })
+        .fold(nalgebra::Matrix3::zeros(), |a, b| a + b);
+    (mean, cov)
 }
 
 /// Weighted average of quaternions (largest eigenvector of `sum w q q^T`).
@@ -548,6 +636,7 @@ mod tests {
                 rot,
                 tables: &tables,
                 reference_from_hist: Pose::identity(),
+                spread: SpreadConfig::NONE,
             };
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
             let s = set.sample_poses(4000, &mut rng);

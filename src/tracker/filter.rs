@@ -20,6 +20,7 @@
 //! detection of its model restarts it. An object inside no camera's image keeps its prior
 //! (its uncertainty grows with the motion noise).
 
+mod recovery;
 mod snapshot;
 mod update;
 pub use snapshot::{SNAPSHOT_VERSION, TrackPrior, TrackSnapshot, TrackerSnapshot};
@@ -28,17 +29,20 @@ use crate::geometry::{Pose, PoseSamples};
 use crate::mesh::Mesh;
 use crate::tracker::bins::{GridTables, gaussian_kernel};
 use crate::tracker::codebook::Codebook;
+pub use crate::tracker::estimate::SpreadConfig;
 use crate::tracker::estimate::{EstimateConfig, ParticleSet};
 use crate::tracker::motion::{OdometryNoise, brownian, move_with_odometry};
 use crate::tracker::observation::ObservationConfig;
 use crate::tracker::sparse::{BlurWork, Lattice, RotationState};
+pub use crate::tracker::verify::VerificationConfig;
 use crate::tracker::{
-    CameraFrame, CameraMount, Detection, Estimate, ParticleView, RobotOdometry, StepReport, Track, TrackStatus,
-    TrackerError,
+    CameraFrame, CameraMount, Detection, Estimate, ParticleView, ReinitReason, Reinitialisation, RobotOdometry,
+    StepReport, Track, TrackStatus, TrackerError,
 };
-use nalgebra::{Point3, UnitQuaternion, Vector3};
+use nalgebra::{UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
+use recovery::Disagreement;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -72,7 +76,7 @@ pub struct TrackerConfig {
     pub association_margin_rel: f64,
     /// A detection that matches no track of its object opens a new track only while the
     /// object has fewer tracks than this that are not lost (0: no limit, every unmatched
-    /// detection is a new instance). A lost track is restarted first either way. With a limit,
+    /// detection is a new instance; 1 by default, as the service runs). A lost track is restarted first either way. With a limit,
     /// two cameras whose first detections disagree on the position (or a track that drifted
     /// out of its detection's box) cannot duplicate a single object.
     #[serde(default)]
@@ -94,7 +98,42 @@ pub struct TrackerConfig {
     /// What each step matches and keeps of the rotation grid.
     #[serde(default)]
     pub matching: MatchingConfig,
+    /// How resampling keeps the translation particles apart.
+    #[serde(default)]
+    pub spread: SpreadConfig,
+    /// When the cameras' detections disagree with a track, part of it starts again.
+    #[serde(default)]
+    pub recovery: RecoveryConfig,
+    /// Competing rotation modes checked against the depth images.
+    #[serde(default)]
+    pub verification: VerificationConfig,
     pub seed: u64,
+}
+
+/// Recovery when the cameras disagree with a track (augmented Monte Carlo localisation's
+/// random particles, made deterministic): when, for `steps` steps in a row, at least two
+/// views' detection-derived positions agree with each other and lie outside the track's 99 %
+/// region (its particle covariance plus the detection's own uncertainty), and no more views
+/// support the track than disagree, the disagreeing views' components are spawned again from
+/// their detections. The rotation state is left alone (the new particles take the track's
+/// rotation belief). After a recovery the track waits `cooldown_steps` before the next one.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct RecoveryConfig {
+    /// Steps in a row of disagreement before the particles are spawned again (0: never).
+    pub steps: u32,
+    pub cooldown_steps: u32,
+    /// Chi-square bound of the region (3 degrees of freedom: 11.34 for 99 %).
+    pub region_chi2: f64,
+}
+
+impl Default for RecoveryConfig {
+    fn default() -> Self {
+        Self {
+            steps: 5,
+            cooldown_steps: 10,
+            region_chi2: 11.34,
+        }
+    }
 }
 
 /// What a step matches and keeps of the rotation grid (see [`crate::tracker::sparse`]).
@@ -182,9 +221,12 @@ impl Default for TrackerConfig {
             init_uv_jitter_rel: 0.1,
             init_depth_sigma_m: 0.03,
             association_margin_rel: 0.3,
-            max_tracks_per_object: 0,
+            max_tracks_per_object: 1,
             view_weight_tempering: default_view_weight_tempering(),
             matching: MatchingConfig::default(),
+            spread: SpreadConfig::default(),
+            recovery: RecoveryConfig::default(),
+            verification: VerificationConfig::default(),
             seed: 1,
         }
     }
@@ -231,6 +273,8 @@ struct TrackState {
     map_cache: Vec<CachedMap>,
     /// Position of the rotating slice of the grid matched at the next step.
     slice_cursor: usize,
+    /// The cameras' disagreement with the track (see [`RecoveryConfig`]).
+    disagreement: Disagreement,
 }
 
 /// One camera's entry of a track's bin-map cache: the camera's name, the rotation of its last
@@ -244,7 +288,7 @@ impl TrackState {
     fn n(&self) -> usize {
         self.positions.len()
     }
-    fn set<'a>(&'a self, tables: &'a GridTables) -> ParticleSet<'a> {
+    fn set<'a>(&'a self, tables: &'a GridTables, spread: SpreadConfig) -> ParticleSet<'a> {
         ParticleSet {
             positions_m: &self.positions,
             sources: &self.sources,
@@ -252,6 +296,7 @@ impl TrackState {
             rot: &self.rot,
             tables,
             reference_from_hist: self.reference_from_hist,
+            spread,
         }
     }
 }
@@ -375,7 +420,10 @@ impl Tracker {
         if s.n() == 0 {
             return None;
         }
-        Some(s.set(&self.models[s.model].tables).sample_poses(n, rng))
+        Some(
+            s.set(&self.models[s.model].tables, self.config.spread)
+                .sample_poses(n, rng),
+        )
     }
 
     pub fn orientation_loglik(
@@ -389,7 +437,7 @@ impl Tracker {
             return None;
         }
         Some(
-            s.set(&self.models[s.model].tables)
+            s.set(&self.models[s.model].tables, self.config.spread)
                 .orientation_loglik(reference_from_object_rotation),
         )
     }
@@ -407,7 +455,10 @@ impl Tracker {
         if s.n() == 0 {
             return None;
         }
-        Some(s.set(&self.models[s.model].tables).rotation_densities(rotations, orbit))
+        Some(
+            s.set(&self.models[s.model].tables, self.config.spread)
+                .rotation_densities(rotations, orbit),
+        )
     }
 
     pub fn particles(&self, track_id: u64) -> Option<Vec<ParticleView>> {
@@ -531,6 +582,13 @@ impl Tracker {
             }
         }
 
+        // recovery: tracks that the cameras' detections place elsewhere
+        if self.config.recovery.steps > 0 {
+            for ti in 0..self.states.len() {
+                self.check_disagreement(ti, &views, &mut report);
+            }
+        }
+
         // 3. update, 4. estimates and resampling
         for ti in 0..self.states.len() {
             if self.states[ti].n() == 0 {
@@ -574,27 +632,14 @@ impl Tracker {
         let Some(mi) = self.models.iter().position(|m| m.name == det.object) else {
             return;
         };
-        let [bx, by, bw, bh] = det.bbox_xywh_px;
+        let [_, _, bw, bh] = det.bbox_xywh_px;
         if !(bw > 1.0 && bh > 1.0) {
             return;
         }
-        let margin = self.config.association_margin_rel;
-        let inside = |s: &TrackState| -> bool {
-            let m = s.set(&self.models[s.model].tables).mean_position();
-            let p = view_from_ref * Point3::from(m);
-            // the box's edges are at bx - 0.5 and bx + bw - 0.5 in pixel coordinates
-            match frame.intrinsics.project(&p).map(|[u, v]| [u + 0.5, v + 0.5]) {
-                Some([u, v]) => {
-                    u >= bx - margin * bw
-                        && u <= bx + bw * (1.0 + margin)
-                        && v >= by - margin * bh
-                        && v <= by + bh * (1.0 + margin)
-                }
-                None => false,
-            }
-        };
         let associated = (0..self.states.len()).find(|&i| {
-            self.states[i].model == mi && self.tracks[i].status != TrackStatus::Lost && inside(&self.states[i])
+            self.states[i].model == mi
+                && self.tracks[i].status != TrackStatus::Lost
+                && self.detection_holds(i, frame, det, view_from_ref)
         });
         match associated {
             Some(i) => {
@@ -634,8 +679,15 @@ impl Tracker {
                         self.states[i].rotation = None;
                         self.states[i].reference_from_hist = Pose::identity();
                         self.states[i].map_cache.clear();
+                        self.states[i].disagreement = Disagreement::default();
                         self.tracks[i].status = TrackStatus::Initialising;
                         self.tracks[i].weak_steps = 0;
+                        self.tracks[i].reinitialised = Some(Reinitialisation {
+                            stamp_ns: self.stamp_ns,
+                            reason: ReinitReason::Redetected {
+                                camera: frame.camera.clone(),
+                            },
+                        });
                         i
                     }
                     None => {
@@ -649,6 +701,7 @@ impl Tracker {
                             best_similarity: None,
                             weak_steps: 0,
                             seen_by: Vec::new(),
+                            reinitialised: None,
                         });
                         self.states.push(TrackState {
                             model: mi,
@@ -661,6 +714,7 @@ impl Tracker {
                             reference_from_hist: Pose::identity(),
                             map_cache: Vec::new(),
                             slice_cursor: 0,
+                            disagreement: Disagreement::default(),
                         });
                         report.tracks_created.push(id);
                         self.states.len() - 1
@@ -691,34 +745,9 @@ impl Tracker {
             self.config.particles_per_external_camera
         };
         let diameter = self.models[mi].codebook.diameter_m;
-        let [bx, by, bw, bh] = det.bbox_xywh_px;
-        // the box covers pixel columns bx .. bx + bw, so its centre is at bx + bw / 2 - 0.5
-        let (cu, cv) = (bx + bw / 2.0 - 0.5, by + bh / 2.0 - 0.5);
+        let [_, _, bw, bh] = det.bbox_xywh_px;
+        let ([cu, cv], z0) = detection_centre(frame, det, diameter);
         let k = &frame.intrinsics;
-        let mut depths: Vec<f32> = Vec::new();
-        let (x0, x1) = (
-            (bx + bw * 0.25).max(0.0) as u32,
-            ((bx + bw * 0.75) as u32).min(k.width.saturating_sub(1)),
-        );
-        let (y0, y1) = (
-            (by + bh * 0.25).max(0.0) as u32,
-            ((by + bh * 0.75) as u32).min(k.height.saturating_sub(1)),
-        );
-        for y in y0..=y1 {
-            for x in x0..=x1 {
-                let d = frame.depth.get(x, y);
-                if d > 0.0 && d.is_finite() {
-                    depths.push(d);
-                }
-            }
-        }
-        let z0 = if depths.is_empty() {
-            k.fx() * diameter * 0.8 / bw.max(bh)
-        } else {
-            let mid = depths.len() / 2;
-            depths.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
-            depths[mid] as f64 + 0.25 * diameter
-        };
         let zs = Normal::new(0.0, self.config.init_depth_sigma_m + 0.1 * diameter).ok();
         let ref_from_view = view_from_ref.inverse();
         (0..n)
@@ -767,6 +796,42 @@ impl Tracker {
         s.positions.extend(parts);
         normalise(&mut s.weights);
     }
+}
+
+/// The pixel of a detection's centre and the depth of the object's centre behind it: the
+/// median depth reading in the box's central half plus a quarter of the object's diameter
+/// (the visible surface is in front of the centre), or the depth at which the object's
+/// diameter fills the box when no reading is there.
+pub(super) fn detection_centre(frame: &CameraFrame, det: &Detection, diameter: f64) -> ([f64; 2], f64) {
+    let [bx, by, bw, bh] = det.bbox_xywh_px;
+    // the box covers pixel columns bx .. bx + bw, so its centre is at bx + bw / 2 - 0.5
+    let (cu, cv) = (bx + bw / 2.0 - 0.5, by + bh / 2.0 - 0.5);
+    let k = &frame.intrinsics;
+    let mut depths: Vec<f32> = Vec::new();
+    let (x0, x1) = (
+        (bx + bw * 0.25).max(0.0) as u32,
+        ((bx + bw * 0.75) as u32).min(k.width.saturating_sub(1)),
+    );
+    let (y0, y1) = (
+        (by + bh * 0.25).max(0.0) as u32,
+        ((by + bh * 0.75) as u32).min(k.height.saturating_sub(1)),
+    );
+    for y in y0..=y1 {
+        for x in x0..=x1 {
+            let d = frame.depth.get(x, y);
+            if d > 0.0 && d.is_finite() {
+                depths.push(d);
+            }
+        }
+    }
+    let z0 = if depths.is_empty() {
+        k.fx() * diameter * 0.8 / bw.max(bh)
+    } else {
+        let mid = depths.len() / 2;
+        depths.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+        depths[mid] as f64 + 0.25 * diameter
+    };
+    ([cu, cv], z0)
 }
 
 fn normalise(w: &mut [f64]) {
@@ -831,6 +896,7 @@ mod tests {
             reference_from_hist: Pose::identity(),
             map_cache: vec![],
             slice_cursor: 0,
+            disagreement: Disagreement::default(),
         };
         floor_components(&mut s, 0.05);
         let w1: f64 = s.weights[2] + s.weights[3];

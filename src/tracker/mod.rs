@@ -57,6 +57,7 @@ pub mod kernels;
 pub mod motion;
 pub mod observation;
 pub mod sparse;
+pub mod verify;
 
 use crate::geometry::Pose;
 use serde::{Deserialize, Serialize};
@@ -68,7 +69,10 @@ pub use crate::sensor::{CameraFrame, CameraMount, Detection, RobotOdometry};
 
 pub use codebook::{Codebook, CodebookConfig, ColorFeatures};
 pub use encoder::{Encoder, LinearDenoisingEncoder};
-pub use filter::{TrackPrior, TrackSnapshot, Tracker, TrackerConfig, TrackerSnapshot};
+pub use filter::{
+    RecoveryConfig, SpreadConfig, TrackPrior, TrackSnapshot, Tracker, TrackerConfig, TrackerSnapshot,
+    VerificationConfig,
+};
 
 /// Errors of the tracker module.
 #[derive(Debug, thiserror::Error)]
@@ -119,6 +123,33 @@ pub struct Track {
     pub weak_steps: u32,
     /// Cameras that gave evidence in the last step.
     pub seen_by: Vec<String>,
+    /// When and why the track last started again (None: never).
+    #[serde(default)]
+    pub reinitialised: Option<Reinitialisation>,
+}
+
+/// When and why a track started again.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Reinitialisation {
+    /// Stamp of the step that started it again.
+    pub stamp_ns: i64,
+    pub reason: ReinitReason,
+}
+
+/// Why a track started again.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum ReinitReason {
+    /// The track was lost and this camera's detection of its object started it again.
+    Redetected { camera: String },
+    /// These cameras' detections agreed with each other and lay outside the track's 99 %
+    /// region for `steps` steps in a row: their particles were spawned again from the
+    /// detections, `offset_m` from the track's mean (the rotation belief was kept).
+    CamerasDisagreed {
+        cameras: Vec<String>,
+        offset_m: f64,
+        steps: u32,
+    },
 }
 
 /// One component of the translation mixture (Eq. 2): the particles of one source camera.
@@ -181,6 +212,9 @@ pub struct StepReport {
     pub audited: usize,
     #[serde(default)]
     pub audit_outside: usize,
+    /// Tracks whose competing rotation modes were checked against the images in this step.
+    #[serde(default)]
+    pub verified: usize,
 }
 
 /// Seconds spent per stage in one step (summed over objects).
@@ -195,5 +229,8 @@ pub struct StageTimings {
     pub blur_s: f64,
     pub resampling_s: f64,
     pub estimates_s: f64,
+    /// Rendering and scoring competing rotation modes ([`verify`]).
+    #[serde(default)]
+    pub verification_s: f64,
     pub total_s: f64,
 }

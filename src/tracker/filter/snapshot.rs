@@ -21,7 +21,7 @@
 //! grid restores onto another (the coarse codebook comes first after a restart): each stored
 //! bin's mass moves to the nearest bin of the new grid.
 
-use super::{TrackState, Tracker};
+use super::{Disagreement, TrackState, Tracker};
 use crate::geometry::{Pose, ray_rotation};
 use crate::tracker::bins::GridTables;
 use crate::tracker::sparse::RotationState;
@@ -155,6 +155,7 @@ impl Tracker {
             best_similarity: None,
             weak_steps: 0,
             seen_by: Vec::new(),
+            reinitialised: None,
         });
         let state = state_from_column(
             mi,
@@ -236,7 +237,7 @@ impl Tracker {
     fn track_snapshot(&self, i: usize) -> TrackSnapshot {
         let (track, s) = (&self.tracks[i], &self.states[i]);
         let tables = &self.models[s.model].tables;
-        let mixture = s.set(tables).mixture();
+        let mixture = s.set(tables, self.config.spread).mixture();
         let total: f64 = mixture.iter().sum();
         let mut bins: Vec<(u32, f32)> = mixture
             .iter()
@@ -388,5 +389,6 @@ fn state_from_column(
         reference_from_hist,
         map_cache: Vec::new(),
         slice_cursor: 0,
+        disagreement: Disagreement::default(),
     }
 }

@@ -110,7 +110,7 @@ impl Tracker {
         let kd = codebook.code_dim();
         let obs_cfg = self.config.observation;
         let matching = self.config.matching;
-        let mean_ref = self.states[ti].set(&tables).mean_position();
+        let mean_ref = self.states[ti].set(&tables, self.config.spread).mean_position();
         let reference_from_hist = self.states[ti].reference_from_hist;
         let mean_hist = reference_from_hist
             .inverse_transform_point(&Point3::from(mean_ref))
@@ -388,6 +388,14 @@ impl Tracker {
         let t0 = Instant::now();
         self.refresh_estimate(ti);
         report.timings.estimates_s += t0.elapsed().as_secs_f64();
+        if had_evidence {
+            let t0 = Instant::now();
+            if self.verify_modes(ti, views, &seen_by) {
+                report.verified += 1;
+                self.refresh_estimate(ti);
+            }
+            report.timings.verification_s += t0.elapsed().as_secs_f64();
+        }
 
         // resampling within components, then the bins that went back to the floor
         let t0 = Instant::now();
@@ -484,13 +492,103 @@ impl Tracker {
         }
     }
 
+    /// When two or more rotation modes of track `ti` each hold at least
+    /// `VerificationConfig::min_mode_mass`, renders the heaviest few into every view that saw
+    /// the object, scores them against its depth ([`crate::tracker::verify`]) and scales each
+    /// mode's bins (those nearer to it than to the other modes, within twice the modes' merge
+    /// angle) by `exp(score - best score)`. Returns whether it did.
+    fn verify_modes(&mut self, ti: usize, views: &[(&CameraFrame, Pose, usize)], seen_by: &[String]) -> bool {
+        let cfg = self.config.verification;
+        let Some(est) = self.states[ti].estimate.as_ref() else {
+            return false;
+        };
+        // shares of the modes' mass (the modes cluster the heaviest bins only)
+        let total: f64 = est.rotation_modes.iter().map(|m| m.mass).sum();
+        let modes: Vec<UnitQuaternion<f64>> = est
+            .rotation_modes
+            .iter()
+            .filter(|m| total > 0.0 && m.mass / total >= cfg.min_mode_mass)
+            .take(cfg.max_modes)
+            .map(|m| {
+                let [x, y, z, w] = m.rotation_xyzw;
+                UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z))
+            })
+            .collect();
+        if modes.len() < 2 {
+            return false;
+        }
+        let mean_ref = est.reference_from_object.translation;
+        let mi = self.states[ti].model;
+        let model = &self.models[mi];
+        let mut total = vec![0.0; modes.len()];
+        let mut scored = false;
+        for (frame, view_from_ref, _) in views.iter().filter(|v| seen_by.contains(&v.0.camera)) {
+            let poses: Vec<Pose> = modes
+                .iter()
+                .map(|q| view_from_ref * Pose::from_parts(mean_ref, *q))
+                .collect();
+            if let Some(s) = crate::tracker::verify::score_hypotheses(
+                &model.mesh,
+                &frame.intrinsics,
+                &frame.depth,
+                &poses,
+                model.codebook.diameter_m,
+                &cfg,
+            ) {
+                for (t, v) in total.iter_mut().zip(s) {
+                    *t += v;
+                }
+                scored = true;
+            }
+        }
+        if !scored {
+            return false;
+        }
+        let best = total.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        let factors: Vec<f32> = total.iter().map(|t| (t - best).exp() as f32).collect();
+        // each active bin's rotation in the reference frame, through the mean's ray as the
+        // estimate's modes are
+        let tables = model.tables.clone();
+        let radius = 2.0 * self.config.estimate.mode_merge_rad;
+        let s = &mut self.states[ti];
+        let mean_hist = s
+            .reference_from_hist
+            .inverse_transform_point(&Point3::from(mean_ref.vector))
+            .coords;
+        let to_ref = s.reference_from_hist.rotation * crate::geometry::ray_rotation(&mean_hist);
+        let nc = s.rot.n_cols();
+        let grid = &tables.grid;
+        let scale: Vec<f32> = s
+            .rot
+            .active
+            .par_iter()
+            .map(|b| {
+                let r = to_ref * grid.rotation(grid.unflat(*b as usize));
+                let (k, a) = modes
+                    .iter()
+                    .map(|m| m.angle_to(&r))
+                    .enumerate()
+                    .min_by(|x, y| x.1.total_cmp(&y.1))
+                    .unwrap_or((0, f64::INFINITY));
+                if a < radius { factors[k] } else { 1.0 }
+            })
+            .collect();
+        for (row, f) in s.rot.values.chunks_mut(nc.max(1)).zip(&scale) {
+            for v in row {
+                *v *= f;
+            }
+        }
+        s.rot.renormalise(&tables);
+        true
+    }
+
     /// Recomputes a track's estimate from its particles.
     pub(super) fn refresh_estimate(&mut self, ti: usize) {
         let tables = self.models[self.states[ti].model].tables.clone();
         let status = self.tracks[ti].status;
         let est = {
             let s = &self.states[ti];
-            let set = s.set(&tables);
+            let set = s.set(&tables, self.config.spread);
             let mean = set.mean_position();
             let mean_hist = s
                 .reference_from_hist
@@ -551,9 +649,7 @@ impl Tracker {
         let n = s.n();
         let mut src_idx: Vec<usize> = Vec::with_capacity(n);
         let mut new_w: Vec<f64> = Vec::with_capacity(n);
-        let mut cams: Vec<usize> = s.sources.clone();
-        cams.sort_unstable();
-        cams.dedup();
+        let cams = components(&s.sources);
         let mut new_sources = Vec::with_capacity(n);
         for c in cams {
             let idx: Vec<usize> = (0..n).filter(|&i| s.sources[i] == c).collect();
@@ -573,12 +669,47 @@ impl Tracker {
                 new_sources.push(c);
             }
         }
-        s.positions = src_idx.iter().map(|&i| s.positions[i]).collect();
+        let spread = self.config.spread;
+        let kernels: Vec<(usize, Vector3<f64>, Option<nalgebra::Matrix3<f64>>, f64)> = components(&s.sources)
+            .into_iter()
+            .map(|c| {
+                let (mean, cov) = crate::tracker::estimate::component_moments(&s.positions, &s.weights, &s.sources, c);
+                let h2 = spread.bandwidth * spread.bandwidth;
+                let chol = (h2 > 0.0)
+                    .then(|| (cov * h2 + nalgebra::Matrix3::identity() * 1e-12).cholesky())
+                    .flatten()
+                    .map(|c| c.l());
+                (c, mean, chol, spread.extra_std_m(&mean, &cov))
+            })
+            .collect();
+        let shrink = (1.0 - (spread.bandwidth * spread.bandwidth).min(1.0)).sqrt();
+        let std_normal = rand_distr::StandardNormal;
+        let mut positions: Vec<Vector3<f64>> = src_idx.iter().map(|&i| s.positions[i]).collect();
+        for (p, c) in positions.iter_mut().zip(&new_sources) {
+            let Some((_, mean, chol, extra)) = kernels.iter().find(|k| k.0 == *c) else {
+                continue;
+            };
+            let z = Vector3::from_fn(|_, _| rand_distr::Distribution::<f64>::sample(&std_normal, &mut self.rng));
+            let e = Vector3::from_fn(|_, _| rand_distr::Distribution::<f64>::sample(&std_normal, &mut self.rng));
+            if let Some(l) = chol {
+                *p = mean + (*p - mean) * shrink + l * z;
+            }
+            *p += e * *extra;
+        }
+        s.positions = positions;
         s.rot.resample(&src_idx);
         s.weights = new_w;
         s.sources = new_sources;
         normalise(&mut s.weights);
     }
+}
+
+/// The distinct source cameras of a track's particles, ascending.
+fn components(sources: &[usize]) -> Vec<usize> {
+    let mut cams = sources.to_vec();
+    cams.sort_unstable();
+    cams.dedup();
+    cams
 }
 
 /// Sorts the active bins (with their values) ascending.
