@@ -81,6 +81,54 @@ pub struct TrackView {
     pub truth: Option<TruthDto>,
     /// Milliseconds from receiving the newest fused frame to this estimate.
     pub ingest_to_estimate_ms: Option<f64>,
+    /// When and why the tracker last started this track again (none: never).
+    pub reinitialised: Option<ReinitialisationDto>,
+}
+
+/// When and why a track started again.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct ReinitialisationDto {
+    /// Stamp of the step that started it again.
+    pub stamp_ns: i64,
+    pub reason: ReinitReasonDto,
+}
+
+/// Why a track started again.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum ReinitReasonDto {
+    /// The track was lost and this camera's detection of its object started it again.
+    Redetected { camera: String },
+    /// These cameras' detections agreed with each other and lay outside the track's 99 %
+    /// region (its covariance plus the detections' own uncertainty) for `steps` steps in a
+    /// row, while no more cameras supported the track: their particles were spawned again
+    /// from their detections, `offset_m` from the track's mean; the rotation belief was kept.
+    CamerasDisagreed {
+        cameras: Vec<String>,
+        offset_m: f64,
+        steps: u32,
+    },
+}
+
+impl From<&crate::tracker::Reinitialisation> for ReinitialisationDto {
+    fn from(r: &crate::tracker::Reinitialisation) -> Self {
+        use crate::tracker::ReinitReason;
+        Self {
+            stamp_ns: r.stamp_ns,
+            reason: match &r.reason {
+                ReinitReason::Redetected { camera } => ReinitReasonDto::Redetected { camera: camera.clone() },
+                ReinitReason::CamerasDisagreed {
+                    cameras,
+                    offset_m,
+                    steps,
+                } => ReinitReasonDto::CamerasDisagreed {
+                    cameras: cameras.clone(),
+                    offset_m: *offset_m,
+                    steps: *steps,
+                },
+            },
+        }
+    }
 }
 
 /// One point of a track's history.
@@ -158,6 +206,7 @@ impl From<&TrackState> for TrackView {
             decision: t.decision.as_deref().map(DecisionView::from),
             truth: t.truth.as_ref().map(TruthDto::from),
             ingest_to_estimate_ms: t.ingest_to_estimate_ms,
+            reinitialised: t.reinitialised.as_ref().map(ReinitialisationDto::from),
         }
     }
 }

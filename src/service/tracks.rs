@@ -73,6 +73,9 @@ pub struct TrackState {
     pub truth: Option<TruthError>,
     /// Milliseconds from receiving the newest fused frame to this estimate.
     pub ingest_to_estimate_ms: Option<f64>,
+    /// When and why the tracker last started this track again.
+    #[serde(default)]
+    pub reinitialised: Option<crate::tracker::Reinitialisation>,
 }
 
 /// One point of a track's history.

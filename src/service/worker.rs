@@ -410,6 +410,7 @@ pub(super) fn views(
             decision,
             truth,
             ingest_to_estimate_ms: latency_ms,
+            reinitialised: t.reinitialised.clone(),
         });
     }
     out

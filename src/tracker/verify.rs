@@ -57,7 +57,7 @@ fn crop_around(
     max_side: u32,
 ) -> Option<Crop> {
     let [u, v] = k.project(centre)?;
-    let half = 0.6 * diameter_m * k.fx().max(k.fy()) / centre.z;
+    let half = 0.8 * diameter_m * k.fx().max(k.fy()) / centre.z;
     let (x0, y0) = ((u - half).floor().max(0.0), (v - half).floor().max(0.0));
     let (x1, y1) = (
         (u + half).ceil().min(k.width as f64 - 1.0),
@@ -113,11 +113,12 @@ fn crop_around(
 
 /// Log-scores of hypotheses `camera_from_object` (one object, poses that differ in rotation)
 /// against one view's depth image; higher is better, comparable between the hypotheses only.
-/// Over the pixels that some hypothesis covers: a covered pixel costs its depth residual
-/// (after the hypothesis' median offset along the ray, so that a translation error along the
-/// ray does not decide), truncated; a pixel the hypothesis leaves empty costs the truncation
-/// when the observed surface there lies within the object's depth range (something is there
-/// that the hypothesis does not explain). `None` when the object is outside the image.
+/// Each hypothesis is rendered once and slid over the crop (the track's mean position is off by
+/// its error, a few pixels at crop size) and along the ray (its median depth to the observed
+/// object's), and scored at its best placement over every crop pixel: a covered pixel costs
+/// its truncated squared depth residual, an uncovered pixel the truncation when the observed
+/// surface there lies within the object's depth range (something the hypothesis does not
+/// explain). `None` when the object is outside the image.
 pub fn score_hypotheses(
     mesh: &Mesh,
     k: &Intrinsics,
@@ -132,54 +133,81 @@ pub fn score_hypotheses(
         return None;
     }
     let crop = crop_around(k, depth, &centre, diameter_m, config.max_side_px)?;
-    let renders: Vec<Vec<f32>> = camera_from_object
-        .iter()
-        .map(|p| {
-            raster::render(&crop.intrinsics, &[(mesh, *p)], 0.02, [0, 0, 0])
-                .depth
-                .data_m
-        })
-        .collect();
+    let (w, h) = (crop.intrinsics.width as i64, crop.intrinsics.height as i64);
     let sigma = config.depth_sigma_m * centre.z.max(0.1);
     let (near, far) = (centre.z - 0.6 * diameter_m, centre.z + 0.6 * diameter_m);
     let t = config.truncation;
-    let scores = renders
+    let object_like: Vec<bool> = crop
+        .depth
         .iter()
-        .map(|r| {
-            // the hypothesis' offset along the ray: the median residual where it covers
-            let mut res: Vec<f64> = r
-                .iter()
-                .zip(&crop.depth)
-                .filter(|(d, o)| **d > 0.0 && **o > 0.0)
-                .map(|(d, o)| (*o - *d) as f64)
-                .collect();
-            let offset = if res.is_empty() {
-                0.0
-            } else {
-                let mid = res.len() / 2;
-                res.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
-                res[mid].clamp(-0.5 * diameter_m, 0.5 * diameter_m)
+        .map(|o| (*o as f64) > near && (*o as f64) < far)
+        .collect();
+    let median = |mut v: Vec<f64>| -> Option<f64> {
+        if v.is_empty() {
+            return None;
+        }
+        let mid = v.len() / 2;
+        v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+        Some(v[mid])
+    };
+    let observed = median(
+        crop.depth
+            .iter()
+            .zip(&object_like)
+            .filter(|(_, l)| **l)
+            .map(|(o, _)| *o as f64)
+            .collect(),
+    );
+    let reach = (w.max(h) / 6).max(2);
+    let scores = camera_from_object
+        .iter()
+        .map(|p| {
+            let r = raster::render(&crop.intrinsics, &[(mesh, *p)], 0.02, [0, 0, 0])
+                .depth
+                .data_m;
+            let rendered = median(r.iter().filter(|d| **d > 0.0).map(|d| *d as f64).collect());
+            let offset = match (observed, rendered) {
+                (Some(o), Some(d)) => (o - d).clamp(-0.5 * diameter_m, 0.5 * diameter_m),
+                _ => 0.0,
             };
-            let mut cost = 0.0;
-            for (i, o) in crop.depth.iter().enumerate() {
-                if !renders.iter().any(|q| q[i] > 0.0) {
-                    continue;
-                }
-                let o = *o as f64;
-                let d = r[i] as f64;
-                cost += if d > 0.0 {
-                    if o > 0.0 {
-                        (((o - d - offset) / sigma).powi(2)).min(t)
-                    } else {
-                        0.0
+            let cost_at = |dx: i64, dy: i64| -> f64 {
+                let mut cost = 0.0;
+                for y in 0..h {
+                    for x in 0..w {
+                        let i = (y * w + x) as usize;
+                        let (sx, sy) = (x - dx, y - dy);
+                        let d = if sx >= 0 && sy >= 0 && sx < w && sy < h {
+                            r[(sy * w + sx) as usize] as f64
+                        } else {
+                            0.0
+                        };
+                        let o = crop.depth[i] as f64;
+                        cost += if d > 0.0 {
+                            if o > 0.0 {
+                                (((o - d - offset) / sigma).powi(2)).min(t)
+                            } else {
+                                0.0
+                            }
+                        } else if object_like[i] {
+                            t
+                        } else {
+                            0.0
+                        };
                     }
-                } else if o > near && o < far {
-                    t
-                } else {
-                    0.0
-                };
+                }
+                cost
+            };
+            let mut best = f64::INFINITY;
+            let mut dy = -reach;
+            while dy <= reach {
+                let mut dx = -reach;
+                while dx <= reach {
+                    best = best.min(cost_at(dx, dy));
+                    dx += 2;
+                }
+                dy += 2;
             }
-            -cost / config.pixels_per_observation.max(1.0)
+            -best / config.pixels_per_observation.max(1.0)
         })
         .collect();
     Some(scores)
