@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # Installs the system packages pregrasp needs on a fresh Debian/Ubuntu machine (as root or with
 # sudo): Mesa's software Vulkan driver so that wgpu finds an adapter without a GPU; with
-# --browser, Debian's Chromium and its chromedriver for the dashboard's browser test; with
-# --python-client, openapi-python-client (pinned) in a virtual environment under target/ for the
-# generated client's test (tests/api/python_client.rs; needs python3 with venv). Idempotent: it installs
+# --browser, Debian's Chromium for the dashboard's browser test; with --python-client,
+# openapi-python-client (pinned) in a virtual environment under target/ for the generated
+# client's test (tests/api/python_client.rs; needs python3 with venv). Idempotent: it installs
 # only what is missing, and returns at once when everything is there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -14,7 +14,7 @@ want=(mesa-vulkan-drivers libvulkan1)
 python_client=0
 for arg in "$@"; do
   case "$arg" in
-    --browser) want+=(chromium chromium-driver) ;;
+    --browser) want+=(chromium) ;;
     --python-client) python_client=1 ;;
     *) echo "setup: unknown option $arg (--browser, --python-client)" >&2; exit 2 ;;
   esac

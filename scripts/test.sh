@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Runs every test: installs what the tests need (software Vulkan for wgpu, Chromium and
-# chromedriver for the dashboard's browser test, openapi-python-client for the generated client's test), then `cargo test` over the library, binary, integration tests and
+# Runs every test: installs what the tests need (software Vulkan for wgpu, Chromium for the
+# dashboard's browser test, openapi-python-client for the generated client's test), then `cargo test` over the library, binary, integration tests and
 # doc tests, and checks that the benchmarks still build.
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -1,17 +1,17 @@
 //! Browser tests of the live dashboard (`static/`): Debian's Chromium, headless, driven over
-//! WebDriver (`fantoccini` and Debian's chromedriver). The page exposes hooks on `<body>` (`data-connection`,
+//! the DevTools protocol. The page exposes hooks on `<body>` (`data-connection`,
 //! `data-updates`, `data-tracks`, `data-decision`, `data-particles-drawn`, `data-plot-points`,
 //! `data-connects`) so the test can assert that real drawing happened.
 //!
 //! Chromium missing is a test failure with a clear message, never a silent skip.
 
+mod cdp;
 mod mock;
-mod webdriver;
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use webdriver::{Browser, Page};
+use cdp::{Browser, Page};
 
 const WIDTH_PX: u32 = 1440;
 const HEIGHT_PX: u32 = 900;
@@ -249,8 +249,26 @@ async fn dashboard_shows_live_mock_service_and_reconnects() {
         .eval("document.getElementById('view3d').dataset.orbit")
         .await
         .expect("orbit");
-    page.drag(700.0, 300.0, 120.0).await.expect("mouse drag");
-    page.wheel(700, 300, 300).await.expect("wheel");
+    let (x, y) = (700.0, 300.0);
+    for (kind, dx, buttons) in [
+        ("mousePressed", 0.0, 1),
+        ("mouseMoved", 40.0, 1),
+        ("mouseMoved", 120.0, 1),
+        ("mouseReleased", 120.0, 0),
+    ] {
+        page.call(
+            "Input.dispatchMouseEvent",
+            serde_json::json!({ "type": kind, "x": x + dx, "y": y, "button": "left", "buttons": buttons, "clickCount": 1 }),
+        )
+        .await
+        .expect("mouse event");
+    }
+    page.call(
+        "Input.dispatchMouseEvent",
+        serde_json::json!({ "type": "mouseWheel", "x": x, "y": y, "deltaX": 0, "deltaY": 300 }),
+    )
+    .await
+    .expect("wheel");
     let orbit_after = page
         .wait_for(
             &format!("(() => {{ const o = document.getElementById('view3d').dataset.orbit; return o !== {orbit_before} ? o : null; }})()"),
@@ -262,7 +280,12 @@ async fn dashboard_shows_live_mock_service_and_reconnects() {
     eprintln!("orbit (yaw pitch distance): {orbit_before} -> {orbit_after}");
 
     // A 1366x768 laptop screen: everything fits without horizontal scrolling.
-    page.set_viewport(1366, 768).await.expect("resize");
+    page.call(
+        "Emulation.setDeviceMetricsOverride",
+        serde_json::json!({ "width": 1366, "height": 768, "deviceScaleFactor": 1, "mobile": false }),
+    )
+    .await
+    .expect("resize");
     tokio::time::sleep(Duration::from_millis(500)).await;
     let overflow = page
         .eval("document.documentElement.scrollWidth - window.innerWidth")
