@@ -120,7 +120,7 @@ fn eval_writes_results_and_multi_view_beats_a_blind_robot_camera() {
             .as_ref()
             .is_some_and(|f| (0.0..=1.0).contains(&f.p_raw) && f.effective_sample_size > 0.0)
     }));
-    assert!(out_multi.join("plots/seq0.svg").is_file());
+    assert!(out_multi.join("plots/seq0.svg").is_file() && out_multi.join("plots/seq0.png").is_file());
     assert_eq!(multi.objects.len(), 1);
     let m = &multi.objects[0];
     assert_eq!(m.name, "box");
@@ -215,7 +215,10 @@ fn eval_writes_results_and_multi_view_beats_a_blind_robot_camera() {
         auc_multi > auc_single,
         "ADD-S AUC over all frames: multi {auc_multi} vs single {auc_single}"
     );
-    // The comparison plot holds both runs.
+    // The comparison plot holds both runs (the compared one dashed, in the legend as such), as
+    // SVG and PNG.
     let svg = std::fs::read_to_string(out_single.join("plots/seq0.svg")).expect("svg");
-    assert!(svg.contains("stroke-dasharray"));
+    assert!(svg.contains("box single") && svg.contains("box (compared)"));
+    let png = image::open(out_single.join("plots/seq0.png")).expect("png");
+    assert!(png.width() > 0 && png.height() > 0);
 }

@@ -4,8 +4,8 @@
 //!
 //! Files: `metrics.rs` (per-frame errors, symmetries, ADD/ADD-S, AUC), `truth.rs` (ground
 //! truth in the reference frame, for scoring only), `report.rs` (`results.json` and the
-//! Markdown table beside the paper's), `plot.rs` (SVG plots over time, the reliability
-//! diagram), `calibration.rs` (scores of the grasp decision), `trust.rs` (the truth's place
+//! Markdown table beside the paper's), `plot.rs` (plots over time as SVG and PNG, the
+//! reliability diagram; plotters), `calibration.rs` (scores of the grasp decision), `trust.rs` (the truth's place
 //! in the tracked distribution: highest-density regions), `run.rs` (the runner), `cli.rs`
 //! (`pregrasp eval`), `refit.rs` (`pregrasp calibrate`: the map of the calibrated `p_success`
 //! and the rule chosen by its failures). Symmetries (shape, and shape with colour) live in `crate::symmetry`.

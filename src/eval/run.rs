@@ -16,7 +16,7 @@
 use super::EvalError;
 use super::calibration::{DecisionFeatures, DecisionOutcome};
 use super::metrics::{self, ModelPoints, Symmetries};
-use super::plot::{Series, sequence_svg};
+use super::plot::{Series, write_sequence_plots};
 use super::report::{FrameErrors, FrameMetrics, Mode, ObjectTrace, Results, SequenceSummary, TruthPlace};
 use super::trust::{GaussianMixture, RegionScore};
 use super::truth::{associate, camera_distance_m, objects_in_reference, reference_from_world};
@@ -640,7 +640,7 @@ fn decide_once(
 
 /// Runs [`evaluate_sequence`] over every sequence under `data` and writes into `out`:
 /// `results.json`, `table.md` (beside the paper's Table I), `frames.json` (every object's
-/// per-step metrics) and `plots/<sequence>.svg`. With `compare`, the plots also show the
+/// per-step metrics) and `plots/<sequence>.svg` and `.png`. With `compare`, the plots also show the
 /// traces of an earlier run (its `frames.json`) dashed, e.g. the single-view baseline.
 pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>) -> Result<Results, EvalError> {
     let io = |p: &Path, e: std::io::Error| EvalError::Io(format!("{}: {e}", p.display()));
@@ -678,12 +678,12 @@ pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>
         for t in compare_traces.iter().filter(|t| t.sequence == outcome.summary.name) {
             series.push(Series::from_trace(t, &format!("{} (compared)", t.object), true, t0));
         }
-        let svg = sequence_svg(
+        write_sequence_plots(
             &format!("{} ({}-view)", outcome.summary.name, cfg.mode.as_str()),
             &series,
-        );
-        let svg_path = out.join("plots").join(format!("{}.svg", outcome.summary.name));
-        std::fs::write(&svg_path, svg).map_err(|e| io(&svg_path, e))?;
+            &out.join("plots"),
+            &outcome.summary.name,
+        )?;
         tracing::info!(
             sequence = %outcome.summary.name,
             frames = outcome.summary.frames,
