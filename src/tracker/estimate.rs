@@ -592,6 +592,47 @@ mod tests {
     }
 
     #[test]
+    fn a_collapsed_component_reports_at_least_the_spread_floor() {
+        use rand::SeedableRng;
+        let grid = RotationGrid::new(15).unwrap();
+        let tables = GridTables::new(grid);
+        let rot = RotationState::uniform(4);
+        // camera 0: four copies of one particle 2 m away; camera 1 would be wide already
+        let positions = vec![Vector3::new(0.0, 0.0, 2.0); 4];
+        let spread = SpreadConfig {
+            bandwidth: 0.3,
+            floor_m: 0.004,
+            floor_per_m: 0.006,
+        };
+        let set = ParticleSet {
+            positions_m: &positions,
+            sources: &[0, 0, 0, 0],
+            weights: &[0.25; 4],
+            rot: &rot,
+            tables: &tables,
+            reference_from_hist: Pose::identity(),
+            spread,
+        };
+        let floor = 0.004 + 0.006 * 2.0;
+        let c = &set.components(&["cam".to_string()])[0];
+        for (k, row) in c.covariance_m2.iter().enumerate() {
+            assert!((row[k] - floor * floor).abs() < 1e-12, "{:?}", c.covariance_m2);
+        }
+        let (cov, std) = set.translation_covariance();
+        assert!((cov[(0, 0)] - floor * floor).abs() < 1e-12 && (std - floor * 3f64.sqrt()).abs() < 1e-9);
+        // the samples carry the floor too: their spread matches it
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let poses = set.sample_poses(4000, &mut rng).poses;
+        let var_x = poses.iter().map(|p| p.translation.x.powi(2)).sum::<f64>() / poses.len() as f64;
+        assert!((var_x.sqrt() / floor - 1.0).abs() < 0.05, "{} vs {floor}", var_x.sqrt());
+        // a component already wider than the floor is left as it is
+        assert_eq!(
+            spread.extra_std_m(&Vector3::new(0.0, 0.0, 2.0), &(Matrix3::identity() * 1e-3)),
+            0.0
+        );
+    }
+
+    #[test]
     fn samples_follow_particle_weights_and_histograms() {
         use rand::SeedableRng;
         let grid = RotationGrid::new(15).unwrap();

@@ -726,7 +726,7 @@ impl Tracker {
     }
 
     /// Particles (reference frame) from one detection: pixels around the box centre, depth
-    /// from the median reading in the box's centre plus a quarter of the object's diameter.
+    /// from the detection ([`detection_centre`]).
     fn init_particles(
         &mut self,
         mi: usize,
@@ -799,7 +799,8 @@ impl Tracker {
 }
 
 /// The pixel of a detection's centre and the depth of the object's centre behind it: the
-/// median depth reading in the box's central half plus a quarter of the object's diameter
+/// lower quartile of the depth readings in the box's central half plus a quarter of the
+/// object's diameter
 /// (the visible surface is in front of the centre), or the depth at which the object's
 /// diameter fills the box when no reading is there.
 pub(super) fn detection_centre(frame: &CameraFrame, det: &Detection, diameter: f64) -> ([f64; 2], f64) {
@@ -827,9 +828,11 @@ pub(super) fn detection_centre(frame: &CameraFrame, det: &Detection, diameter: f
     let z0 = if depths.is_empty() {
         k.fx() * diameter * 0.8 / bw.max(bh)
     } else {
-        let mid = depths.len() / 2;
-        depths.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
-        depths[mid] as f64 + 0.25 * diameter
+        // the lower quartile: a thin or curved object leaves the box's centre to the table
+        // behind it, whose readings would place the object there
+        let q = depths.len() / 4;
+        depths.select_nth_unstable_by(q, |a, b| a.total_cmp(b));
+        depths[q] as f64 + 0.25 * diameter
     };
     ([cu, cv], z0)
 }
