@@ -310,6 +310,32 @@ mod tests {
     }
 
     #[test]
+    fn a_default_service_runs_the_settings_the_shipped_map_is_fitted_for() {
+        // `scripts/calibrate.sh` fits for `service_settings_hash`; a default server tracking on
+        // its coarse codebook must compute the same, or a refitted map would still be refused
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let service = Service::open(ServiceConfig::new(tmp.path().to_path_buf())).expect("service");
+        service
+            .register_object("can", "Can", crate::mesh::builtin("can").expect("can"), true)
+            .expect("can");
+        let gripper = service
+            .gripper(crate::service::registry::DEFAULT_GRIPPER)
+            .expect("gripper");
+        assert_eq!(
+            service.decision_settings_hash("can", &gripper),
+            crate::eval::calibration::service_settings_hash()
+        );
+        // a depth-only object or another gripper is another configuration
+        service
+            .register_object("grey", "Grey can", crate::mesh::builtin("can").expect("can"), false)
+            .expect("grey");
+        assert_ne!(
+            service.decision_settings_hash("grey", &gripper),
+            crate::eval::calibration::service_settings_hash()
+        );
+    }
+
+    #[test]
     fn a_stale_map_is_refused_and_the_answer_says_so() {
         let (service, _tmp) = service_with_track(false);
         let mut raw = Vec::new();
