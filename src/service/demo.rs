@@ -325,6 +325,11 @@ pub struct HeadlessDecision {
     pub succeeds_on_truth: bool,
     /// `calibrated`, `stale` or `absent`.
     pub calibration: String,
+    /// The test most samples fail and its share (why `p_success_raw` is not 1).
+    pub top_reason: Option<(String, f64)>,
+    /// The track's error against the truth at its last step: metres, degrees (modulo the
+    /// can's exact symmetries).
+    pub truth_error: Option<(f64, f64)>,
 }
 
 /// What one loop gave the target.
@@ -496,6 +501,16 @@ pub fn run_headless(args: &HeadlessArgs) -> anyhow::Result<Vec<LoopOutcome>> {
                             crate::grasp::CalibrationStatus::Absent { .. } => "absent",
                         }
                         .into(),
+                        top_reason: record
+                            .decision
+                            .reasons
+                            .first()
+                            .map(|r| (format!("{:?}", r.test).to_lowercase(), r.failure_share)),
+                        truth_error: state
+                            .track(id)
+                            .ok()
+                            .and_then(|t| t.truth)
+                            .map(|e| (e.translation_error_m, e.orientation_error_deg)),
                     };
                     outcome.decisions += 1;
                     if d.grasp {
