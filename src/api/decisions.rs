@@ -454,3 +454,105 @@ async fn post_decision(
         .map_err(ApiError::internal)??;
     Ok(Json(DecisionView::from(&*record)))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::{Pose, PoseSamples};
+    use crate::grasp::calibrated::{CalibrationMap, GraspRule, IsotonicBlock, MAP_VERSION};
+    use std::sync::Arc;
+
+    /// The answer about a can sampled exactly at its estimate (raw rate 1), through `calibration`.
+    fn record(calibration: &grasp::Calibration, running: &str) -> DecisionRecord {
+        let object = grasp::GraspObject::new(&crate::mesh::builtin("can").expect("can")).expect("solid");
+        let gripper = grasp::Gripper::default_parallel_jaw();
+        let estimate = Pose::translation(0.0, 0.0, 0.6);
+        let samples = PoseSamples {
+            poses: vec![estimate; 50],
+            effective_sample_size: 50.0,
+        };
+        let query = grasp::DecisionQuery {
+            n_samples: 50,
+            threshold: calibration.rule().threshold,
+            grasp: None,
+            support_plane: None,
+        };
+        let mut d =
+            grasp::decide_calibrated(&object, &gripper, &estimate, &samples, &query, calibration).expect("decision");
+        calibration.smoother().apply(0, &mut d, calibration);
+        DecisionRecord {
+            decision: d,
+            settings_hash: running.into(),
+            stamp_ns: 0,
+            world_from_reference: Pose::identity(),
+            base_from_reference: None,
+        }
+    }
+
+    #[test]
+    fn the_answer_names_its_calibration_and_rule() {
+        let map = CalibrationMap {
+            version: MAP_VERSION,
+            settings_hash: "fitted".into(),
+            settings: serde_json::json!({}),
+            fitted_at: "2026-12-02T00:00:00Z".into(),
+            fitted_on: vec!["test".into()],
+            n_decisions: 100,
+            n_successes: 90,
+            n_approaches: 1,
+            blocks: vec![IsotonicBlock {
+                raw_lo: 0.0,
+                raw_hi: 1.0,
+                raw_mean: 0.5,
+                count: 100,
+                successes: 90,
+            }],
+            rule: GraspRule {
+                quantity: grasp::RuleQuantity::Calibrated,
+                threshold: 0.85,
+                run_length: 2,
+            },
+            smoothing_time_constant_s: 1.5,
+        };
+        let map = Arc::new(map);
+
+        let fitted = DecisionView::from(&record(&grasp::Calibration::checked(map.clone(), "fitted"), "fitted"));
+        assert_eq!(fitted.calibration.state, CalibrationState::Calibrated);
+        assert_eq!(fitted.calibration.map_settings_hash.as_deref(), Some("fitted"));
+        assert_eq!(fitted.calibration.running_settings_hash, "fitted");
+        assert_eq!(fitted.calibration.message, None);
+        assert_eq!((fitted.p_success, fitted.p_success_raw), (0.9, 1.0));
+        assert_eq!(
+            fitted.rule,
+            RuleView {
+                quantity: RuleQuantity::Calibrated,
+                threshold: 0.85,
+                run_length: 2
+            }
+        );
+        assert_eq!((fitted.smoothing.time_constant_s, fitted.smoothing.run), (1.5, 1));
+        // one answer over the threshold is not yet the run of two
+        assert_eq!(fitted.decision, Verdict::Observe);
+
+        let stale = DecisionView::from(&record(&grasp::Calibration::checked(map, "running"), "running"));
+        assert_eq!(stale.calibration.state, CalibrationState::Stale);
+        assert_eq!(stale.calibration.map_settings_hash.as_deref(), Some("fitted"));
+        assert_eq!(stale.calibration.running_settings_hash, "running");
+        assert!(
+            stale
+                .calibration
+                .message
+                .as_deref()
+                .is_some_and(|m| m.contains("refit"))
+        );
+        assert_eq!((stale.p_success, stale.p_success_raw), (1.0, 1.0));
+        assert_eq!(stale.rule.quantity, RuleQuantity::RawLower);
+        assert_eq!(stale.smoothing.time_constant_s, 0.0);
+        // the raw rule: the Wilson lower bound of 50 of 50 successes is 0.929 >= 0.9
+        assert_eq!(stale.decision, Verdict::Grasp);
+
+        let absent = DecisionView::from(&record(&grasp::Calibration::raw("no map"), "running"));
+        assert_eq!(absent.calibration.state, CalibrationState::Absent);
+        assert_eq!(absent.calibration.map_settings_hash, None);
+    }
+}
