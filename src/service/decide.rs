@@ -186,6 +186,7 @@ mod tests {
             decision: None,
             truth: None,
             ingest_to_estimate_ms: None,
+            reinitialised: None,
         }
     }
 
