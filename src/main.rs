@@ -1,4 +1,4 @@
-//! The `pregrasp` command line: `generate`, `eval`, `serve`, `replay`.
+//! The `pregrasp` command line: `generate`, `eval`, `calibrate`, `serve`, `replay`, `demo-loops`.
 
 use clap::{Parser, Subcommand};
 
@@ -26,6 +26,9 @@ enum Command {
     Serve(pregrasp::api::cli::ServeArgs),
     /// Stream a sequence into a running server as a robot would.
     Replay(pregrasp::tools::replay::ReplayArgs),
+    /// Run the built-in demo's loops headless (simulated time, no server) and print per loop
+    /// when the can first got `grasp` and whether that grasp works on the true pose.
+    DemoLoops(pregrasp::service::demo::HeadlessArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -39,5 +42,6 @@ fn main() -> anyhow::Result<()> {
         Command::Calibrate(a) => pregrasp::eval::refit::run(a),
         Command::Serve(a) => pregrasp::api::cli::serve(a),
         Command::Replay(a) => pregrasp::tools::replay::cli(a),
+        Command::DemoLoops(a) => pregrasp::service::demo::run_headless(&a).map(|_| ()),
     }
 }

@@ -470,7 +470,10 @@ fn a_calibrated_answer_carries_the_raw_rate_beside_the_mapped_one() {
     let grasp = Some(top_grasp(&can, 0.03));
     let raw = decide(&can, &gripper, &est, &samples, &query(grasp.clone())).unwrap();
     assert_eq!(raw.decision, Verdict::Observe);
-    assert!(!raw.calibration.calibrated && raw.calibration.warning.is_some());
+    assert!(matches!(
+        raw.calibration,
+        pregrasp::grasp::CalibrationStatus::Absent { .. }
+    ));
     assert_eq!(raw.p_success, raw.p_success_raw);
     assert_eq!(raw.ci95, raw.ci95_raw);
 
@@ -484,7 +487,7 @@ fn a_calibrated_answer_carries_the_raw_rate_beside_the_mapped_one() {
     let m = cal.map().unwrap();
     assert!((d.p_success - m.apply(d.p_success_raw)).abs() < 1e-12);
     assert!(d.ci95[0] <= d.p_success && d.p_success <= d.ci95[1]);
-    assert!(d.calibration.calibrated && d.calibration.settings_hash.as_deref() == Some("running"));
+    assert!(d.calibration.is_calibrated() && d.calibration.map_settings_hash() == Some("running"));
     assert_eq!(d.rule.quantity, RuleQuantity::Calibrated);
     // the map's 0.97 clears its rule's 0.95 where the raw Wilson bound did not clear 0.9
     assert_eq!(d.decision, Verdict::Grasp, "{} {:?}", d.p_success, d.ci95);
@@ -498,7 +501,11 @@ fn a_calibrated_answer_carries_the_raw_rate_beside_the_mapped_one() {
     let s = decide_calibrated(&can, &gripper, &est, &samples, &query(grasp), &stale).unwrap();
     assert_eq!(s.decision, Verdict::Observe);
     assert_eq!(s.p_success, s.p_success_raw);
-    assert!(s.calibration.warning.unwrap().contains("changed tracker"));
+    assert!(matches!(
+        s.calibration,
+        pregrasp::grasp::CalibrationStatus::Stale { .. }
+    ));
+    assert!(s.calibration.warning().unwrap().contains("changed tracker"));
 }
 
 #[test]

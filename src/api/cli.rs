@@ -79,6 +79,11 @@ pub struct ServeArgs {
     /// only. Must divide 180.
     #[arg(long, default_value_t = 5, value_parser = parse_grid_step)]
     pub codebook_step_deg: u32,
+    /// The calibration map of `p_success` (JSON written by `pregrasp calibrate --fit`) instead
+    /// of the one built into the binary; applied only where it was fitted for the running
+    /// settings (a decision says `stale` otherwise).
+    #[arg(long)]
+    pub calibration_map: Option<PathBuf>,
 }
 
 fn parse_grid_step(s: &str) -> Result<u32, String> {
@@ -171,6 +176,13 @@ pub fn config_from(args: &ServeArgs) -> anyhow::Result<ApiConfig> {
         .ok_or_else(|| anyhow::anyhow!("--window-ms {} is too large", args.window_ms))?;
     if args.codebook_step_deg < config.service.codebooks.coarse_step_deg {
         config.service.codebooks.fine = Some((args.codebook_step_deg, crate::tracker::CodebookConfig::default()));
+    }
+    if let Some(path) = &args.calibration_map {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| anyhow::anyhow!("reading --calibration-map {}: {e}", path.display()))?;
+        let map = crate::grasp::CalibrationMap::from_json(&text)
+            .map_err(|e| anyhow::anyhow!("--calibration-map {}: {e}", path.display()))?;
+        config.service.calibration_map = Some(std::sync::Arc::new(map));
     }
     Ok(config)
 }

@@ -36,8 +36,10 @@ pub struct DecisionRequest {
     pub support_plane: Option<PlaneDto>,
     /// Poses drawn from the distribution (default 1,000, at most 5,000).
     pub n_samples: Option<usize>,
-    /// Grasp only when the lower end of the 95 % Wilson interval on p_success (over the
-    /// samples' effective sample size) reaches this (default 0.9; see the operation's description).
+    /// The threshold of the rule in force, in (0, 1]: on the calibrated `p_success` (or its
+    /// lower bound) when the service's calibration map fits its settings, else on the lower
+    /// end of the raw rate's 95 % Wilson interval. Absent: the rule's own (the map's, e.g.
+    /// 0.96; 0.9 without a map). See the operation's description.
     pub threshold: Option<f64>,
 }
 
@@ -54,7 +56,7 @@ impl DecisionRequest {
                 .transpose()?,
             support_plane_world: self.support_plane.map(grasp::SupportPlane::from),
             n_samples: self.n_samples.unwrap_or(defaults.n_samples),
-            threshold: self.threshold.unwrap_or(defaults.threshold),
+            threshold: self.threshold.or(defaults.threshold),
         })
     }
 }
@@ -144,17 +146,90 @@ pub struct RankedGrasp {
     pub n_samples: usize,
 }
 
+/// Whether `p_success` went through a calibration map.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum CalibrationState {
+    /// Through the map fitted for the running settings.
+    Calibrated,
+    /// The service's map was fitted for other settings (tracker, codebook, grid or gripper)
+    /// and is refused: `p_success` is the raw rate, the rule the one without a map. Refit the
+    /// map (`scripts/calibrate.sh`).
+    Stale,
+    /// No map: `p_success` is the raw rate, the rule the one without a map.
+    Absent,
+}
+
+/// The calibration behind `p_success`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct CalibrationView {
+    pub state: CalibrationState,
+    /// The settings hash the service's map was fitted for (absent without a map).
+    pub map_settings_hash: Option<String>,
+    /// The settings hash of the configuration that answered (tracker, the object's codebook
+    /// and grid, gripper); the map is applied only when it equals `map_settings_hash`.
+    pub running_settings_hash: String,
+    /// Why the map was not applied (absent when calibrated).
+    pub message: Option<String>,
+}
+
+/// What the rule compares with its threshold.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum RuleQuantity {
+    /// The calibrated `p_success`.
+    Calibrated,
+    /// The lower end of `ci95` (calibrated).
+    CalibratedLower,
+    /// The lower end of `ci95_raw`, the raw rate's Wilson interval (the rule without a map).
+    RawLower,
+}
+
+/// The rule that gave `decision`: `grasp` when `quantity >= threshold` in `run_length`
+/// successive answers about the track (answers on one tracker step count once).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct RuleView {
+    pub quantity: RuleQuantity,
+    pub threshold: f64,
+    pub run_length: u32,
+}
+
+/// How successive answers about the track were smoothed.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct SmoothingView {
+    /// Time constant of the exponential average of the raw rate, seconds (0: this answer
+    /// alone).
+    pub time_constant_s: f64,
+    /// The smoothed raw rate that the map was applied to.
+    pub p_success_raw_smoothed: f64,
+    /// This answer's own `p_success` before smoothing (calibrated when `calibration` says so).
+    pub p_success_unsmoothed: f64,
+    /// Successive answers, this one included, whose quantity reached the threshold.
+    pub run: u32,
+}
+
 /// A decision with its context: the stamp of the distribution it used and the gripper pose in
 /// the reference (robot camera), robot base and world frames.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct DecisionView {
     pub decision: Verdict,
-    /// Share of the samples on which the grasp succeeds.
+    /// The probability that the grasp succeeds: the calibration map applied to the raw rate
+    /// smoothed over the track's recent answers when `calibration.state` is `calibrated`;
+    /// otherwise the raw rate itself.
     pub p_success: f64,
-    /// 95 % Wilson interval on `p_success` over the effective sample size.
+    /// 95 % interval of `p_success` (calibrated: the smoothed raw interval through the map,
+    /// widened by the fit's own uncertainty; otherwise `ci95_raw`).
     pub ci95: [f64; 2],
+    /// This answer's share of the samples on which the grasp succeeds.
+    pub p_success_raw: f64,
+    /// 95 % Wilson interval on `p_success_raw` over the effective sample size.
+    pub ci95_raw: [f64; 2],
+    pub calibration: CalibrationView,
+    pub rule: RuleView,
+    pub smoothing: SmoothingView,
     pub n_samples: usize,
     pub effective_sample_size: f64,
+    /// The rule's threshold (`rule.threshold`).
     pub threshold: f64,
     /// Stamp of the estimate whose distribution the samples were drawn from, nanoseconds.
     pub stamp_ns: i64,
@@ -230,6 +305,56 @@ impl From<&grasp::RankedGrasp> for RankedGrasp {
     }
 }
 
+impl CalibrationView {
+    fn new(status: &grasp::CalibrationStatus, running_settings_hash: &str) -> Self {
+        let state = match status {
+            grasp::CalibrationStatus::Calibrated { .. } => CalibrationState::Calibrated,
+            grasp::CalibrationStatus::Stale { .. } => CalibrationState::Stale,
+            grasp::CalibrationStatus::Absent { .. } => CalibrationState::Absent,
+        };
+        Self {
+            state,
+            map_settings_hash: status.map_settings_hash().map(str::to_string),
+            running_settings_hash: running_settings_hash.to_string(),
+            message: status.warning().map(str::to_string),
+        }
+    }
+}
+
+impl From<&grasp::GraspRule> for RuleView {
+    fn from(r: &grasp::GraspRule) -> Self {
+        Self {
+            quantity: match r.quantity {
+                grasp::RuleQuantity::Calibrated => RuleQuantity::Calibrated,
+                grasp::RuleQuantity::CalibratedLower => RuleQuantity::CalibratedLower,
+                grasp::RuleQuantity::RawLower => RuleQuantity::RawLower,
+            },
+            threshold: r.threshold,
+            run_length: r.run_length,
+        }
+    }
+}
+
+impl SmoothingView {
+    /// The decision's smoothing, or for an answer that was not smoothed, itself alone.
+    fn new(d: &grasp::Decision) -> Self {
+        match &d.smoothing {
+            Some(s) => Self {
+                time_constant_s: s.time_constant_s,
+                p_success_raw_smoothed: s.p_success_raw_smoothed,
+                p_success_unsmoothed: s.p_success_unsmoothed,
+                run: s.run,
+            },
+            None => Self {
+                time_constant_s: 0.0,
+                p_success_raw_smoothed: d.p_success_raw,
+                p_success_unsmoothed: d.p_success,
+                run: u32::from(d.decision == grasp::Verdict::Grasp),
+            },
+        }
+    }
+}
+
 /// The one conversion of a decision into its answer.
 impl From<&DecisionRecord> for DecisionView {
     fn from(r: &DecisionRecord) -> Self {
@@ -241,6 +366,11 @@ impl From<&DecisionRecord> for DecisionView {
             },
             p_success: d.p_success,
             ci95: d.ci95,
+            p_success_raw: d.p_success_raw,
+            ci95_raw: d.ci95_raw,
+            calibration: CalibrationView::new(&d.calibration, &r.settings_hash),
+            rule: (&d.rule).into(),
+            smoothing: SmoothingView::new(d),
             n_samples: d.n_samples,
             effective_sample_size: d.effective_sample_size,
             threshold: d.threshold,
@@ -262,13 +392,37 @@ pub fn router() -> OpenApiRouter<AppState> {
 
 /// Grasp now, or look more?
 ///
-/// Poses drawn from the track's distribution are checked against the gripper; `p_success` is
-/// the share of samples on which the grasp succeeds. The answer is `grasp` when the lower end
-/// of the 95 % Wilson interval on `p_success`, taken over the samples' effective sample size
-/// (ESS, at most the tracker's 110 particles however many samples are drawn), reaches
-/// `threshold`. With the default 0.9 that needs a sampled rate of at least 0.956 at ESS 110,
-/// 0.983 at ESS 50, 0.942 at ESS 200: the rule is conservative by construction, and an
-/// answer of `observe` with `p_success` near 0.9 means "not sure enough yet", not "will fail".
+/// Poses drawn from the track's distribution are checked against the gripper;
+/// `p_success_raw` is the share of samples on which the grasp succeeds, with its 95 % Wilson
+/// interval `ci95_raw` over the samples' effective sample size (ESS, at most the tracker's
+/// particles however many samples are drawn).
+///
+/// **Calibrated (`calibration.state` = `calibrated`)**: the service's calibration map was fitted
+/// (`scripts/calibrate.sh`) for the settings hash of the configuration answering
+/// (`calibration.running_settings_hash`). Successive answers about the track are smoothed: an
+/// answer `dt` seconds after the last moves the smoothed raw rate `r` by the weight
+/// `w = 1 - exp(-dt / smoothing.time_constant_s)`, `r <- r + w * (p_success_raw - r)` (with
+/// 1.5 s and a step every 0.2 s, `w` = 0.125: a raw rate jumping between 0.62 and 0.95 moves the
+/// answer by at most 0.04). `p_success` is the map at `r`: the isotonic fit of the outcome on
+/// the true pose against the smoothed raw rate on generated sequences, linear between its
+/// blocks' (mean raw rate, observed success rate) points. E.g. blocks at (0.939, 0.952) and
+/// (0.956, 0.990) give `p_success` = 0.952 + (r - 0.939) / (0.956 - 0.939) * (0.990 - 0.952),
+/// so 0.96 at r = 0.943. The answer is `grasp` when `rule.quantity` reaches `rule.threshold` in
+/// `rule.run_length` successive answers (answers on one tracker step count once; `smoothing.run`
+/// counts them): with the rule `calibrated >= 0.96` in 2 answers, a planner gets `grasp` once two
+/// successive steps put the smoothed raw rate at 0.943 or more. Of the fitting data's answers
+/// with a given `p_success`, about that share succeeded on the true pose; `ci95` is the
+/// smoothed raw interval through the map, widened by the map's own uncertainty (its blocks'
+/// Wilson intervals). The map's rule was chosen by its failures: the per-answer and
+/// per-approach failure rates on the fitting data, then the recall within 1.2 m.
+///
+/// **Stale or absent map (`calibration.state` = `stale` / `absent`)**: `p_success` is the raw
+/// rate itself, `ci95` its Wilson interval, nothing is smoothed, and the rule is the one before
+/// calibration: `grasp` when the lower end of `ci95_raw` reaches `threshold` (default 0.9). That
+/// needs a sampled rate of at least 0.956 at ESS 110, 0.983 at ESS 50, 0.942 at ESS 200: the
+/// rule is conservative by construction, and an answer of `observe` with `p_success` near 0.9
+/// means "not sure enough yet", not "will fail". A stale map is never applied: its probabilities
+/// describe another tracker.
 #[utoipa::path(post, path = "/tracks/{id}/decision", tag = "decisions",
     params(("id" = u64, Path, description = "Track id")),
     request_body = DecisionRequest,
@@ -299,4 +453,106 @@ async fn post_decision(
         .await
         .map_err(ApiError::internal)??;
     Ok(Json(DecisionView::from(&*record)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::{Pose, PoseSamples};
+    use crate::grasp::calibrated::{CalibrationMap, GraspRule, IsotonicBlock, MAP_VERSION};
+    use std::sync::Arc;
+
+    /// The answer about a can sampled exactly at its estimate (raw rate 1), through `calibration`.
+    fn record(calibration: &grasp::Calibration, running: &str) -> DecisionRecord {
+        let object = grasp::GraspObject::new(&crate::mesh::builtin("can").expect("can")).expect("solid");
+        let gripper = grasp::Gripper::default_parallel_jaw();
+        let estimate = Pose::translation(0.0, 0.0, 0.6);
+        let samples = PoseSamples {
+            poses: vec![estimate; 50],
+            effective_sample_size: 50.0,
+        };
+        let query = grasp::DecisionQuery {
+            n_samples: 50,
+            threshold: calibration.rule().threshold,
+            grasp: None,
+            support_plane: None,
+        };
+        let mut d =
+            grasp::decide_calibrated(&object, &gripper, &estimate, &samples, &query, calibration).expect("decision");
+        calibration.smoother().apply(0, &mut d, calibration);
+        DecisionRecord {
+            decision: d,
+            settings_hash: running.into(),
+            stamp_ns: 0,
+            world_from_reference: Pose::identity(),
+            base_from_reference: None,
+        }
+    }
+
+    #[test]
+    fn the_answer_names_its_calibration_and_rule() {
+        let map = CalibrationMap {
+            version: MAP_VERSION,
+            settings_hash: "fitted".into(),
+            settings: serde_json::json!({}),
+            fitted_at: "2026-12-02T00:00:00Z".into(),
+            fitted_on: vec!["test".into()],
+            n_decisions: 100,
+            n_successes: 90,
+            n_approaches: 1,
+            blocks: vec![IsotonicBlock {
+                raw_lo: 0.0,
+                raw_hi: 1.0,
+                raw_mean: 0.5,
+                count: 100,
+                successes: 90,
+            }],
+            rule: GraspRule {
+                quantity: grasp::RuleQuantity::Calibrated,
+                threshold: 0.85,
+                run_length: 2,
+            },
+            smoothing_time_constant_s: 1.5,
+        };
+        let map = Arc::new(map);
+
+        let fitted = DecisionView::from(&record(&grasp::Calibration::checked(map.clone(), "fitted"), "fitted"));
+        assert_eq!(fitted.calibration.state, CalibrationState::Calibrated);
+        assert_eq!(fitted.calibration.map_settings_hash.as_deref(), Some("fitted"));
+        assert_eq!(fitted.calibration.running_settings_hash, "fitted");
+        assert_eq!(fitted.calibration.message, None);
+        assert_eq!((fitted.p_success, fitted.p_success_raw), (0.9, 1.0));
+        assert_eq!(
+            fitted.rule,
+            RuleView {
+                quantity: RuleQuantity::Calibrated,
+                threshold: 0.85,
+                run_length: 2
+            }
+        );
+        assert_eq!((fitted.smoothing.time_constant_s, fitted.smoothing.run), (1.5, 1));
+        // one answer over the threshold is not yet the run of two
+        assert_eq!(fitted.decision, Verdict::Observe);
+
+        let stale = DecisionView::from(&record(&grasp::Calibration::checked(map, "running"), "running"));
+        assert_eq!(stale.calibration.state, CalibrationState::Stale);
+        assert_eq!(stale.calibration.map_settings_hash.as_deref(), Some("fitted"));
+        assert_eq!(stale.calibration.running_settings_hash, "running");
+        assert!(
+            stale
+                .calibration
+                .message
+                .as_deref()
+                .is_some_and(|m| m.contains("refit"))
+        );
+        assert_eq!((stale.p_success, stale.p_success_raw), (1.0, 1.0));
+        assert_eq!(stale.rule.quantity, RuleQuantity::RawLower);
+        assert_eq!(stale.smoothing.time_constant_s, 0.0);
+        // the raw rule: the Wilson lower bound of 50 of 50 successes is 0.929 >= 0.9
+        assert_eq!(stale.decision, Verdict::Grasp);
+
+        let absent = DecisionView::from(&record(&grasp::Calibration::raw("no map"), "running"));
+        assert_eq!(absent.calibration.state, CalibrationState::Absent);
+        assert_eq!(absent.calibration.map_settings_hash, None);
+    }
 }

@@ -336,24 +336,71 @@ pub fn fit_isotonic(points: &[(f64, bool)]) -> Vec<IsotonicBlock> {
         .collect()
 }
 
-/// Whether an answer's `p_success` went through a map, and which.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
-pub struct CalibrationStatus {
-    /// `p_success` and `ci95` come from a fitted map (false: they are the raw rate and its
-    /// Wilson interval).
-    pub calibrated: bool,
-    /// The settings hash of the map in use.
-    pub settings_hash: Option<String>,
-    /// Why there is no map (a stale or missing map), for the caller to show.
-    pub warning: Option<String>,
+/// Whether an answer's `p_success` went through a map, and if not, why: a map for other
+/// settings is named as such (it must be refitted), never silently applied.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "status", rename_all = "snake_case")]
+pub enum CalibrationStatus {
+    /// `p_success` and `ci95` come from a map fitted for the running settings.
+    Calibrated {
+        /// The settings hash the map was fitted for (= the running one).
+        settings_hash: String,
+    },
+    /// The map was fitted for other settings and is refused: `p_success` is the raw rate and
+    /// the rule the one without a map.
+    Stale {
+        map_settings_hash: String,
+        running_settings_hash: String,
+        message: String,
+    },
+    /// No usable map (none given, or it could not be read): the raw rate and the rule without
+    /// a map.
+    Absent { message: String },
 }
 
-/// What `decide` calibrates with: a map checked against the running settings, or the raw rate
-/// with the reason.
+impl Default for CalibrationStatus {
+    fn default() -> Self {
+        Self::Absent {
+            message: "no calibration map; p_success is the raw rate".into(),
+        }
+    }
+}
+
+impl CalibrationStatus {
+    /// `p_success` went through a map.
+    pub fn is_calibrated(&self) -> bool {
+        matches!(self, Self::Calibrated { .. })
+    }
+    /// Why there is no map, for the caller to show (`None` when calibrated).
+    pub fn warning(&self) -> Option<&str> {
+        match self {
+            Self::Calibrated { .. } => None,
+            Self::Stale { message, .. } | Self::Absent { message } => Some(message),
+        }
+    }
+    /// The settings hash of the map found (used or refused).
+    pub fn map_settings_hash(&self) -> Option<&str> {
+        match self {
+            Self::Calibrated { settings_hash } => Some(settings_hash),
+            Self::Stale { map_settings_hash, .. } => Some(map_settings_hash),
+            Self::Absent { .. } => None,
+        }
+    }
+}
+
+/// What `decide` calibrates with: a map checked against the running settings, a map refused
+/// because it was fitted for other settings, or no map.
 #[derive(Debug, Clone)]
 pub enum Calibration {
     Fitted(Arc<CalibrationMap>),
-    Raw { reason: String },
+    /// The map's settings hash differs from the running one: answers carry the raw rate.
+    Stale {
+        map_settings_hash: String,
+        running_settings_hash: String,
+    },
+    Raw {
+        reason: String,
+    },
 }
 
 impl Calibration {
@@ -367,14 +414,30 @@ impl Calibration {
     /// The map in `text` when it parses and was fitted for `running_hash`; otherwise the raw
     /// rate, with a warning logged and carried in every answer.
     pub fn load(text: &str, running_hash: &str) -> Self {
-        match CalibrationMap::from_json(text).and_then(|m| m.check(running_hash)) {
-            Ok(m) => Self::Fitted(Arc::new(m)),
+        match CalibrationMap::from_json(text) {
+            Ok(m) => Self::checked(Arc::new(m), running_hash),
             Err(e) => {
-                tracing::warn!(error = %e, "grasp calibration map refused: answers carry the raw rate");
+                tracing::warn!(error = %e, "grasp calibration map unreadable: answers carry the raw rate");
                 Self::Raw {
                     reason: format!("calibration map refused ({e}); p_success is the raw rate"),
                 }
             }
+        }
+    }
+
+    /// `map` when it was fitted for `running_hash`, else [`Calibration::Stale`] (logged).
+    pub fn checked(map: Arc<CalibrationMap>, running_hash: &str) -> Self {
+        if map.settings_hash == running_hash {
+            return Self::Fitted(map);
+        }
+        tracing::warn!(
+            map = %map.settings_hash,
+            running = %running_hash,
+            "grasp calibration map fitted for other settings: answers carry the raw rate"
+        );
+        Self::Stale {
+            map_settings_hash: map.settings_hash.clone(),
+            running_settings_hash: running_hash.to_string(),
         }
     }
 
@@ -386,7 +449,7 @@ impl Calibration {
     pub fn map(&self) -> Option<&CalibrationMap> {
         match self {
             Self::Fitted(m) => Some(m),
-            Self::Raw { .. } => None,
+            Self::Stale { .. } | Self::Raw { .. } => None,
         }
     }
 
@@ -411,19 +474,32 @@ impl Calibration {
             Self::Fitted(m) => (
                 m.apply(raw),
                 m.interval(ci95_raw),
-                CalibrationStatus {
-                    calibrated: true,
-                    settings_hash: Some(m.settings_hash.clone()),
-                    warning: None,
+                CalibrationStatus::Calibrated {
+                    settings_hash: m.settings_hash.clone(),
+                },
+            ),
+            Self::Stale {
+                map_settings_hash,
+                running_settings_hash,
+            } => (
+                raw,
+                ci95_raw,
+                CalibrationStatus::Stale {
+                    map_settings_hash: map_settings_hash.clone(),
+                    running_settings_hash: running_settings_hash.clone(),
+                    message: GraspError::StaleCalibration {
+                        map: map_settings_hash.clone(),
+                        running: running_settings_hash.clone(),
+                    }
+                    .to_string()
+                        + "; p_success is the raw rate and the rule the one without a map",
                 },
             ),
             Self::Raw { reason } => (
                 raw,
                 ci95_raw,
-                CalibrationStatus {
-                    calibrated: false,
-                    settings_hash: None,
-                    warning: Some(reason.clone()),
+                CalibrationStatus::Absent {
+                    message: reason.clone(),
                 },
             ),
         }
@@ -742,21 +818,34 @@ mod tests {
         assert_eq!(ok.smoothing_time_constant_s(), 0.5);
         let (p, _, status) = ok.calibrate(0.9, [0.85, 0.95]);
         assert_eq!(p, 0.5);
-        assert!(status.calibrated && status.warning.is_none());
+        assert!(status.is_calibrated() && status.warning().is_none());
 
         let stale = Calibration::load(&text, "other");
         assert!(stale.map().is_none());
         assert_eq!(stale.rule(), GraspRule::default());
         let (p, ci, status) = stale.calibrate(0.9, [0.85, 0.95]);
         assert_eq!((p, ci), (0.9, [0.85, 0.95]));
-        let w = status.warning.expect("a warning");
-        assert!(!status.calibrated && w.contains("other") && w.contains("refit"), "{w}");
+        let w = status.warning().expect("a warning");
+        assert!(
+            !status.is_calibrated() && w.contains("other") && w.contains("refit"),
+            "{w}"
+        );
+        assert!(matches!(
+            &status,
+            CalibrationStatus::Stale { map_settings_hash, running_settings_hash, .. }
+                if map_settings_hash == "h" && running_settings_hash == "other"
+        ));
         assert!(matches!(
             CalibrationMap::from_json(&text).and_then(|m| m.check("other")),
             Err(GraspError::StaleCalibration { .. })
         ));
         // a broken map is refused too
-        assert!(Calibration::load("{}", "h").map().is_none());
+        let broken = Calibration::load("{}", "h");
+        assert!(broken.map().is_none());
+        assert!(matches!(
+            broken.calibrate(0.5, [0.4, 0.6]).2,
+            CalibrationStatus::Absent { .. }
+        ));
         let mut bad = m.clone();
         bad.blocks = vec![block(0.0, 0.5, 50, 40), block(0.5, 1.0, 50, 10)];
         assert!(CalibrationMap::from_json(&serde_json::to_string(&bad).expect("json")).is_err());

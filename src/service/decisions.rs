@@ -6,7 +6,7 @@ use super::ServiceState;
 use super::error::ServiceError;
 use super::registry::DEFAULT_GRIPPER;
 use crate::geometry::{Pose, PoseSamples};
-use crate::grasp::{self, GraspObject, SupportPlane};
+use crate::grasp::{self, AnswerSmoother, Calibration, CalibrationMap, GraspObject, Gripper, SupportPlane};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -26,8 +26,9 @@ pub struct DecisionParams {
     pub support_plane_world: Option<SupportPlane>,
     /// Poses drawn from the distribution.
     pub n_samples: usize,
-    /// Grasp only when the lower end of the 95 % Wilson interval on p_success reaches this.
-    pub threshold: f64,
+    /// The threshold of the rule in force (the calibration map's on its quantity, or without
+    /// a map the raw rate's Wilson lower bound); `None`: the rule's own threshold.
+    pub threshold: Option<f64>,
 }
 
 impl Default for DecisionParams {
@@ -37,7 +38,7 @@ impl Default for DecisionParams {
             object_from_gripper: None,
             support_plane_world: None,
             n_samples: grasp::decision::DEFAULT_N_SAMPLES,
-            threshold: grasp::decision::DEFAULT_THRESHOLD,
+            threshold: None,
         }
     }
 }
@@ -47,7 +48,13 @@ impl Default for DecisionParams {
 /// robot camera) in the robot's base and in the world.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DecisionRecord {
+    /// The answer, calibrated and smoothed over the track's answers to this question when the
+    /// calibration map was fitted for `settings_hash` (`decision.calibration` says which).
     pub decision: grasp::Decision,
+    /// The settings hash of the configuration that answered (tracker, the object's codebook
+    /// and grid, gripper): what a calibration map must be fitted for.
+    #[serde(default)]
+    pub settings_hash: String,
     /// Stamp of the estimate whose distribution the samples were drawn from.
     pub stamp_ns: i64,
     pub world_from_reference: Pose,
@@ -139,7 +146,14 @@ pub struct DecisionCache {
     interest: Mutex<HashMap<u64, (std::time::Instant, usize)>>,
     /// Track -> its last answer.
     answers: Mutex<HashMap<u64, SharedAnswer>>,
+    /// Track -> one answer smoother per question (the query's key with the settings hash):
+    /// successive answers about a track are smoothed as the calibration map was fitted.
+    smoothers: Mutex<HashMap<u64, HashMap<String, AnswerSmoother>>>,
 }
+
+/// Questions smoothed per track; beyond this the track's smoothers start over (a planner
+/// asking ever new questions cannot grow the service's memory).
+pub const MAX_SMOOTHERS_PER_TRACK: usize = 16;
 
 impl DecisionCache {
     pub(super) fn note_interest(&self, track_id: u64, n: usize) {
@@ -167,20 +181,53 @@ impl DecisionCache {
             b.insert(bank.drawn.track_id, Arc::new(bank));
         }
     }
-    /// Forgets everything about a track (stopped) or every track (tracker rebuilt).
+    /// Forgets everything about a track (stopped) or every track (tracker rebuilt): its
+    /// banks, shared answers and answer smoothers.
     pub fn forget(&self, track_id: Option<u64>) {
         let mut b = self.banks.lock().unwrap_or_else(|p| p.into_inner());
         let mut a = self.answers.lock().unwrap_or_else(|p| p.into_inner());
+        let mut s = self.smoothers.lock().unwrap_or_else(|p| p.into_inner());
         match track_id {
             Some(id) => {
                 b.remove(&id);
                 a.remove(&id);
+                s.remove(&id);
             }
             None => {
                 b.clear();
                 a.clear();
+                s.clear();
             }
         }
+    }
+    /// Starts a track's answers over (the tracker re-initialised it from a detection): its
+    /// past answers were about another distribution.
+    pub fn restart_answers(&self, track_id: u64) {
+        self.answers.lock().unwrap_or_else(|p| p.into_inner()).remove(&track_id);
+        self.smoothers
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .remove(&track_id);
+    }
+    /// Smooths `decision` (taken on the distribution of `stamp_ns`) with the track's smoother
+    /// for `question`, made with `calibration`'s time constant on first use.
+    pub(super) fn smooth(
+        &self,
+        track_id: u64,
+        question: &str,
+        stamp_ns: i64,
+        decision: &mut grasp::Decision,
+        calibration: &Calibration,
+    ) {
+        let mut s = self.smoothers.lock().unwrap_or_else(|p| p.into_inner());
+        let of_track = s.entry(track_id).or_default();
+        if !of_track.contains_key(question) && of_track.len() >= MAX_SMOOTHERS_PER_TRACK {
+            of_track.clear();
+        }
+        of_track
+            .entry(question.to_string())
+            .or_insert_with(|| calibration.smoother())
+            .apply(stamp_ns, decision, calibration);
     }
     pub(super) fn answer(&self, track_id: u64, generation: u64, key: &str) -> Option<Arc<DecisionRecord>> {
         let a = self.answers.lock().unwrap_or_else(|p| p.into_inner());
@@ -191,5 +238,72 @@ impl DecisionCache {
     pub(super) fn store_answer(&self, track_id: u64, generation: u64, key: String, v: Arc<DecisionRecord>) {
         let mut a = self.answers.lock().unwrap_or_else(|p| p.into_inner());
         a.insert(track_id, (generation, key, v));
+    }
+}
+
+/// The calibration of each running configuration: the service's map (the one shipped with
+/// the binary unless `serve --calibration-map` gave another) checked once per settings hash
+/// (a gripper, an object's codebook), so that a stale map is logged once, not per answer.
+pub struct Calibrations {
+    map: Option<Arc<CalibrationMap>>,
+    by_hash: Mutex<HashMap<String, Calibration>>,
+}
+
+/// Settings hashes remembered by [`Calibrations`] (grippers times codebooks; more start over).
+const MAX_CALIBRATIONS: usize = 64;
+
+impl Calibrations {
+    pub fn new(map: Option<Arc<CalibrationMap>>) -> Self {
+        if map.is_none() {
+            tracing::warn!("no grasp calibration map: answers carry the raw rate");
+        }
+        Self {
+            map,
+            by_hash: Mutex::new(HashMap::new()),
+        }
+    }
+
+    /// The calibration for a running configuration's settings hash: the map when it was
+    /// fitted for it, else stale (or absent) with the raw rate.
+    pub fn for_settings(&self, settings_hash: &str) -> Calibration {
+        let mut c = self.by_hash.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(cal) = c.get(settings_hash) {
+            return cal.clone();
+        }
+        if c.len() >= MAX_CALIBRATIONS {
+            c.clear();
+        }
+        let cal = match &self.map {
+            Some(m) => Calibration::checked(m.clone(), settings_hash),
+            None => Calibration::raw("no calibration map loaded; p_success is the raw rate"),
+        };
+        c.insert(settings_hash.to_string(), cal.clone());
+        cal
+    }
+}
+
+impl ServiceState {
+    /// The settings hash of the configuration answering about `object_id` with `gripper`: the
+    /// tracker's settings, the codebook the object is tracked with (its grid: the coarse one
+    /// until a finer one is built) and the gripper
+    /// ([`crate::eval::calibration::calibration_settings_hash`]).
+    pub fn decision_settings_hash(&self, object_id: &str, gripper: &Gripper) -> String {
+        let plan = &self.config.codebooks;
+        let (codebook, step_deg) = {
+            let reg = self.registry();
+            let object = reg.objects.get(object_id);
+            let built = object.and_then(|o| self.codebooks.get(object_id, &o.info.content_hash, o.info.use_color));
+            match (built, object) {
+                (Some(cb), _) => (cb.config.clone(), cb.grid.step_deg()),
+                (None, o) => (
+                    crate::tracker::CodebookConfig {
+                        use_color: plan.coarse.use_color && o.is_none_or(|o| o.info.use_color),
+                        ..plan.coarse.clone()
+                    },
+                    plan.coarse_step_deg,
+                ),
+            }
+        };
+        crate::eval::calibration::calibration_settings_hash(&self.config.tracker, &codebook, step_deg, gripper)
     }
 }

@@ -57,6 +57,9 @@ pub struct ServiceConfig {
     pub limits: Limits,
     /// Accept ground truth (for display: the demo, replays of generated data).
     pub accept_truth: bool,
+    /// The calibration map of `p_success` (the one shipped with the binary by default); it is
+    /// applied only where it was fitted for the running settings. `None`: no map, raw rates.
+    pub calibration_map: Option<Arc<crate::grasp::CalibrationMap>>,
 }
 
 impl ServiceConfig {
@@ -70,6 +73,19 @@ impl ServiceConfig {
             codebooks: codebooks::CodebookPlan::default(),
             limits: Limits::default(),
             accept_truth: false,
+            calibration_map: shipped_calibration_map(),
+        }
+    }
+}
+
+/// The calibration map compiled into the binary (`None`, logged, if it does not parse; a
+/// test keeps it parsing).
+pub fn shipped_calibration_map() -> Option<Arc<crate::grasp::CalibrationMap>> {
+    match crate::grasp::CalibrationMap::from_json(crate::grasp::calibrated::SHIPPED_MAP_JSON) {
+        Ok(m) => Some(Arc::new(m)),
+        Err(e) => {
+            tracing::warn!("the shipped grasp calibration map is unreadable: {e}");
+            None
         }
     }
 }
@@ -180,6 +196,8 @@ pub struct ServiceState {
     pub tracking: tracks::Tracking,
     pub grasp_objects: decisions::GraspObjects,
     pub decision_cache: decisions::DecisionCache,
+    /// The calibration map checked per running configuration.
+    pub calibrations: decisions::Calibrations,
     pub codebooks: codebooks::Codebooks,
     /// Decisions running at once (one per core).
     pub decision_slots: Arc<tokio::sync::Semaphore>,
@@ -221,6 +239,7 @@ impl Service {
         let ingest = ingest::IngestBuffer::new(config.window_ns, config.max_pending_per_camera);
         let support_plane = scene::load_support_plane(&store);
         let restored = tracks::load_tracker_snapshot(&store);
+        let calibrations = decisions::Calibrations::new(config.calibration_map.clone());
         Ok(Self(Arc::new(ServiceState {
             config,
             store,
@@ -232,6 +251,7 @@ impl Service {
             tracking,
             grasp_objects: decisions::GraspObjects::default(),
             decision_cache: decisions::DecisionCache::default(),
+            calibrations,
             codebooks: codebooks::Codebooks::default(),
             decision_slots: Arc::new(tokio::sync::Semaphore::new(
                 std::thread::available_parallelism().map_or(2, |n| n.get()),

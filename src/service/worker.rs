@@ -416,7 +416,8 @@ pub(super) fn views(
     out
 }
 
-fn step(state: &ServiceState, set: &FusionSet) {
+/// One tracker step on a set of frames (the worker's, and the headless demo's in lockstep).
+pub(super) fn step(state: &ServiceState, set: &FusionSet) {
     let mut guard = state.engine.lock().unwrap_or_else(|p| p.into_inner());
     // (Re)build the tracker when the cameras changed.
     let cameras_now: BTreeMap<String, CameraMount> = state
@@ -488,7 +489,12 @@ fn step(state: &ServiceState, set: &FusionSet) {
     }
     let t0 = Instant::now();
     match engine.tracker.step(&frames, odometry.as_ref()) {
-        Ok(_) => {
+        Ok(report) => {
+            // a track re-initialised from a detection is a new distribution under its old id:
+            // its answers start over
+            for id in &report.tracks_reinitialised {
+                state.decision_cache.restart_answers(*id);
+            }
             let m = &state.metrics;
             let us = t0.elapsed().as_micros() as u64;
             m.steps.fetch_add(1, Ordering::Relaxed);

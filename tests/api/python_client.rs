@@ -127,6 +127,14 @@ async fn a_generated_python_client_calls_the_service() {
     assert_eq!(summary["p_success"], decision["p_success"]);
     assert_eq!(summary["carried_p_success"], decision["p_success"]);
     assert_eq!(summary["stamp_ns"], decision["stamp_ns"]);
+    assert_eq!(summary["calibration_state"], decision["calibration"]["state"]);
+    assert_eq!(
+        summary["running_settings_hash"],
+        decision["calibration"]["running_settings_hash"]
+    );
+    assert_eq!(summary["rule_quantity"], decision["rule"]["quantity"]);
+    assert_eq!(summary["rule_threshold"], 0.8);
+    assert_eq!(summary["p_success_raw"], decision["p_success_raw"]);
     assert!(summary["n_candidates"].as_u64() > Some(0), "{summary}");
     // the decision's context: the gripper in the base is the robot camera's mount times the
     // gripper in the reference (robot camera) frame

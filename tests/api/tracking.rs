@@ -280,8 +280,34 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
     assert!((0.0..=1.0).contains(&p));
     let verdict = d["decision"].as_str().expect("verdict");
     assert!(verdict == "grasp" || verdict == "observe");
-    let lo = d["ci95"][0].as_f64().expect("lo");
-    assert_eq!(verdict == "grasp", lo >= 0.8, "{d}");
+    // `grasp` exactly when the rule in force (the calibrated one when the map fits the running
+    // settings, else the raw rate's Wilson lower bound) held for its run of answers
+    let rule = &d["rule"];
+    assert_eq!(rule["threshold"], 0.8, "{d}");
+    let quantity = match rule["quantity"].as_str().expect("quantity") {
+        "calibrated" => d["p_success"].as_f64(),
+        "calibrated_lower" => d["ci95"][0].as_f64(),
+        "raw_lower" => d["ci95_raw"][0].as_f64(),
+        other => panic!("rule quantity {other}"),
+    }
+    .expect("quantity");
+    let run = d["smoothing"]["run"].as_u64().expect("run");
+    assert_eq!(run > 0, quantity >= 0.8, "{d}");
+    assert_eq!(
+        verdict == "grasp",
+        run >= rule["run_length"].as_u64().expect("run_length"),
+        "{d}"
+    );
+    let calibrated = d["calibration"]["state"] == "calibrated";
+    assert_eq!(
+        calibrated,
+        d["calibration"]["map_settings_hash"] == d["calibration"]["running_settings_hash"],
+        "{d}"
+    );
+    if !calibrated {
+        assert_eq!(d["p_success"], d["p_success_raw"], "{d}");
+        assert!(d["calibration"]["message"].is_string(), "{d}");
+    }
     // The gripper is placed on the estimate: within the object's reach of the truth.
     let wfg = pose_from_json(&d["world_from_gripper"]);
     assert!((wfg.translation.vector - scene.world_from_object.translation.vector).norm() < 0.3);

@@ -94,6 +94,12 @@ def main():
         "world_from_gripper": decision.world_from_gripper.to_dict(),
         "n_candidates": len(decision.candidates),
         "carried_p_success": carried.p_success,
+        # the calibration behind p_success and the rule, as typed enums
+        "calibration_state": decision.calibration.state.value,
+        "running_settings_hash": decision.calibration.running_settings_hash,
+        "rule_quantity": decision.rule.quantity.value,
+        "rule_threshold": decision.rule.threshold,
+        "p_success_raw": decision.p_success_raw,
         "missing_status": missing.status,
         "bad_status": bad.status,
     }
