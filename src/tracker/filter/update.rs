@@ -670,7 +670,7 @@ impl Tracker {
             }
         }
         let spread = self.config.spread;
-        let kernels: Vec<(usize, Vector3<f64>, Option<nalgebra::Matrix3<f64>>, f64)> = components(&s.sources)
+        let kernels: Vec<Kernel> = components(&s.sources)
             .into_iter()
             .map(|c| {
                 let (mean, cov) = crate::tracker::estimate::component_moments(&s.positions, &s.weights, &s.sources, c);
@@ -703,6 +703,10 @@ impl Tracker {
         normalise(&mut s.weights);
     }
 }
+
+/// One component's regularisation kernel: its camera, mean, the Cholesky factor of `h^2 S`
+/// (none without shrinkage) and the standard deviation its floor adds.
+type Kernel = (usize, Vector3<f64>, Option<nalgebra::Matrix3<f64>>, f64);
 
 /// The distinct source cameras of a track's particles, ascending.
 fn components(sources: &[usize]) -> Vec<usize> {
