@@ -98,6 +98,11 @@ pub struct CropParams {
 
 /// Samples the features of one crop into `out` (length `layout.dim()`), masks into `mask`.
 /// Returns the share of depth cells that are valid.
+///
+/// A sample's source pixel is `T_0(Rz(-theta) q)` for its offset `q` from the centre; the
+/// products of each axis' offsets are computed once per crop ([`SampleAxes`]), and without a
+/// rotation the pixel index is separable (one column per `x` offset, one row per `y` offset),
+/// the same arithmetic as per sample.
 pub fn sample_crop(
     layout: &FeatureLayout,
     depth: &DepthImage,
@@ -109,18 +114,6 @@ pub fn sample_crop(
     let f = layout.feature_px;
     let (w, h) = (depth.width as i64, depth.height as i64);
     let (s, c) = p.rotation_rad.sin_cos();
-    // source pixel of a crop offset (in crop pixels from the centre)
-    let src = |qx: f64, qy: f64| -> Option<usize> {
-        // T_theta(q) = T_0(Rz(-theta) q)
-        let x = p.centre_px[0] + c * qx + s * qy;
-        let y = p.centre_px[1] - s * qx + c * qy;
-        let (xi, yi) = (pixel_index(x), pixel_index(y));
-        if xi < 0 || yi < 0 || xi >= w || yi >= h {
-            None
-        } else {
-            Some((yi * w + xi) as usize)
-        }
-    };
     // unclamped here: the noise estimate and the median filter of [`denoise_depth`] need
     // the values beyond the normalisation box; it clamps
     let norm = |d: f32| -> Option<f32> {
@@ -132,7 +125,7 @@ pub fn sample_crop(
             None
         }
     };
-    let cell = p.side_px / f as f64;
+    let axes = SampleAxes::new(p, f, s, c, w, h);
     let mut valid = 0usize;
     for i in 0..f {
         for j in 0..f {
@@ -140,9 +133,7 @@ pub fn sample_crop(
             let mut n = 0;
             for si in 0..SUBSAMPLES {
                 for sj in 0..SUBSAMPLES {
-                    let qx = (j as f64 + (sj as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0;
-                    let qy = (i as f64 + (si as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0;
-                    let v = match src(qx, qy) {
+                    let v = match axes.src(i * SUBSAMPLES + si, j * SUBSAMPLES + sj) {
                         Some(k) => norm(depth.data_m[k]),
                         None => p.zero_is_far.then_some(1.0),
                     };
@@ -166,7 +157,11 @@ pub fn sample_crop(
     denoise_depth(layout, &mut out[..f * f], &mask[..f * f]);
     if layout.use_color {
         let fc = layout.color_px();
-        let ccell = p.side_px / fc as f64;
+        let axes = SampleAxes::new(p, fc, s, c, w, h);
+        // the depth cell under each colour sample, per axis
+        let under: Vec<usize> = (0..fc * SUBSAMPLES)
+            .map(|q| (q / SUBSAMPLES * f / fc + q % SUBSAMPLES * f / (fc * SUBSAMPLES)).min(f - 1))
+            .collect();
         let base = layout.depth_len();
         for i in 0..fc {
             for j in 0..fc {
@@ -174,18 +169,13 @@ pub fn sample_crop(
                 let mut n = 0;
                 for si in 0..SUBSAMPLES {
                     for sj in 0..SUBSAMPLES {
-                        let qx = (j as f64 + (sj as f64 + 0.5) / SUBSAMPLES as f64) * ccell - p.side_px / 2.0;
-                        let qy = (i as f64 + (si as f64 + 0.5) / SUBSAMPLES as f64) * ccell - p.side_px / 2.0;
-                        let k = src(qx, qy);
+                        let (qi, qj) = (i * SUBSAMPLES + si, j * SUBSAMPLES + sj);
                         // object or background: the (denoised) depth cell under this sample,
                         // not the raw pixel (far cameras' per-pixel noise would flip it)
-                        let (di, dj) = (
-                            (i * f / fc + si * f / (fc * SUBSAMPLES)).min(f - 1),
-                            (j * f / fc + sj * f / (fc * SUBSAMPLES)).min(f - 1),
-                        );
-                        let d = (!mask[di * f + dj]).then(|| out[di * f + dj]);
+                        let dk = under[qi] * f + under[qj];
+                        let d = (!mask[dk]).then(|| out[dk]);
                         let Some(d) = d else { continue };
-                        let rgb = match (k, color) {
+                        let rgb = match (axes.src(qi, qj), color) {
                             (Some(k), Some(img)) if d < 1.0 => {
                                 let c = img.data[k];
                                 [c[0] as f32 / 255.0, c[1] as f32 / 255.0, c[2] as f32 / 255.0]
@@ -213,6 +203,67 @@ pub fn sample_crop(
         }
     }
     valid as f64 / (f * f) as f64
+}
+
+/// The source pixels of a crop's `n x n` cells with their sub-samples, per axis: sample
+/// `q = cell * SUBSAMPLES + sub` has the offset `(cell + (sub + 0.5) / SUBSAMPLES) * side / n
+/// - side / 2` along each axis, and sample `(qi, qj)` reads pixel
+/// `(cx + c ox[qj] + s oy[qi], cy - s ox[qj] + c oy[qi])` (`c, s` the rotation's cosine and
+/// sine), evaluated in that order so that every sample lands where it always did.
+struct SampleAxes {
+    /// Per `x` sample: `cx + c ox`, `cy - s ox`.
+    col: Vec<(f64, f64)>,
+    /// Per `y` sample: `s oy`, `c oy`.
+    row: Vec<(f64, f64)>,
+    /// Without a rotation (`s = 0`, `c = 1`): the pixel column per `x` sample and the row per
+    /// `y` sample (`None`: outside the image); adding `s ox = 0` changes no sum.
+    separable: Option<(Vec<Option<i64>>, Vec<Option<i64>>)>,
+    w: i64,
+    h: i64,
+}
+
+impl SampleAxes {
+    fn new(p: &CropParams, n: usize, s: f64, c: f64, w: i64, h: i64) -> Self {
+        let cell = p.side_px / n as f64;
+        let offsets: Vec<f64> = (0..n * SUBSAMPLES)
+            .map(|q| {
+                let (a, b) = (q / SUBSAMPLES, q % SUBSAMPLES);
+                (a as f64 + (b as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0
+            })
+            .collect();
+        let col: Vec<(f64, f64)> = offsets
+            .iter()
+            .map(|o| (p.centre_px[0] + c * o, p.centre_px[1] - s * o))
+            .collect();
+        let row: Vec<(f64, f64)> = offsets.iter().map(|o| (s * o, c * o)).collect();
+        let separable = (s == 0.0 && c == 1.0).then(|| {
+            let inside = |v: f64, lim: i64| Some(pixel_index(v)).filter(|i| *i >= 0 && *i < lim);
+            (
+                col.iter().map(|(x, _)| inside(*x, w)).collect(),
+                offsets.iter().map(|o| inside(p.centre_px[1] + o, h)).collect(),
+            )
+        });
+        Self {
+            col,
+            row,
+            separable,
+            w,
+            h,
+        }
+    }
+
+    /// The flat index of the pixel under sample `(qi, qj)`, `None` outside the image.
+    #[inline]
+    fn src(&self, qi: usize, qj: usize) -> Option<usize> {
+        let (xi, yi) = match &self.separable {
+            Some((cols, rows)) => (cols[qj]?, rows[qi]?),
+            None => (
+                pixel_index(self.col[qj].0 + self.row[qi].0),
+                pixel_index(self.col[qj].1 + self.row[qi].1),
+            ),
+        };
+        (xi >= 0 && yi >= 0 && xi < self.w && yi < self.h).then(|| (yi * self.w + xi) as usize)
+    }
 }
 
 /// Below this brightness (before `color_weight`, summed over the channels: a third of it
@@ -762,6 +813,182 @@ mod tests {
             .collect();
         let noisy = truth.iter().map(|t| t + n.sample(&mut rng)).collect();
         (layout, truth, noisy)
+    }
+
+    /// The per-sample `sample_crop` as it was before its axes were tabulated: the reference
+    /// that the tabulated one must match bit for bit.
+    fn sample_crop_reference(
+        layout: &FeatureLayout,
+        depth: &DepthImage,
+        color: Option<&ColorImage>,
+        p: &CropParams,
+        out: &mut [f32],
+        mask: &mut [bool],
+    ) -> f64 {
+        let f = layout.feature_px;
+        let (w, h) = (depth.width as i64, depth.height as i64);
+        let (s, c) = p.rotation_rad.sin_cos();
+        // source pixel of a crop offset (in crop pixels from the centre)
+        let src = |qx: f64, qy: f64| -> Option<usize> {
+            // T_theta(q) = T_0(Rz(-theta) q)
+            let x = p.centre_px[0] + c * qx + s * qy;
+            let y = p.centre_px[1] - s * qx + c * qy;
+            let (xi, yi) = (pixel_index(x), pixel_index(y));
+            if xi < 0 || yi < 0 || xi >= w || yi >= h {
+                None
+            } else {
+                Some((yi * w + xi) as usize)
+            }
+        };
+        // unclamped here: the noise estimate and the median filter of [`denoise_depth`] need
+        // the values beyond the normalisation box; it clamps
+        let norm = |d: f32| -> Option<f32> {
+            if d > 0.0 && d.is_finite() {
+                Some(((d as f64 - p.z_centre_m) / p.box_m + 0.5) as f32)
+            } else if p.zero_is_far {
+                Some(1.0)
+            } else {
+                None
+            }
+        };
+        let cell = p.side_px / f as f64;
+        let mut valid = 0usize;
+        for i in 0..f {
+            for j in 0..f {
+                let mut sum = 0.0f32;
+                let mut n = 0;
+                for si in 0..SUBSAMPLES {
+                    for sj in 0..SUBSAMPLES {
+                        let qx = (j as f64 + (sj as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0;
+                        let qy = (i as f64 + (si as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0;
+                        let v = match src(qx, qy) {
+                            Some(k) => norm(depth.data_m[k]),
+                            None => p.zero_is_far.then_some(1.0),
+                        };
+                        if let Some(v) = v {
+                            sum += v;
+                            n += 1;
+                        }
+                    }
+                }
+                let k = i * f + j;
+                if n > 0 {
+                    out[k] = sum / n as f32;
+                    mask[k] = false;
+                    valid += 1;
+                } else {
+                    out[k] = 0.0;
+                    mask[k] = true;
+                }
+            }
+        }
+        denoise_depth(layout, &mut out[..f * f], &mask[..f * f]);
+        if layout.use_color {
+            let fc = layout.color_px();
+            let ccell = p.side_px / fc as f64;
+            let base = layout.depth_len();
+            for i in 0..fc {
+                for j in 0..fc {
+                    let mut sum = [0.0f32; 3];
+                    let mut n = 0;
+                    for si in 0..SUBSAMPLES {
+                        for sj in 0..SUBSAMPLES {
+                            let qx = (j as f64 + (sj as f64 + 0.5) / SUBSAMPLES as f64) * ccell - p.side_px / 2.0;
+                            let qy = (i as f64 + (si as f64 + 0.5) / SUBSAMPLES as f64) * ccell - p.side_px / 2.0;
+                            let k = src(qx, qy);
+                            // object or background: the (denoised) depth cell under this sample,
+                            // not the raw pixel (far cameras' per-pixel noise would flip it)
+                            let (di, dj) = (
+                                (i * f / fc + si * f / (fc * SUBSAMPLES)).min(f - 1),
+                                (j * f / fc + sj * f / (fc * SUBSAMPLES)).min(f - 1),
+                            );
+                            let d = (!mask[di * f + dj]).then(|| out[di * f + dj]);
+                            let Some(d) = d else { continue };
+                            let rgb = match (k, color) {
+                                (Some(k), Some(img)) if d < 1.0 => {
+                                    let c = img.data[k];
+                                    [c[0] as f32 / 255.0, c[1] as f32 / 255.0, c[2] as f32 / 255.0]
+                                }
+                                (_, Some(_)) => [BACKGROUND_GREY; 3],
+                                (_, None) => continue,
+                            };
+                            for ch in 0..3 {
+                                sum[ch] += rgb[ch];
+                            }
+                            n += 1;
+                        }
+                    }
+                    for (ch, sc) in sum.iter().enumerate() {
+                        let k = base + (i * fc + j) * 3 + ch;
+                        if n > 0 {
+                            out[k] = sc / n as f32 * layout.color_weight;
+                            mask[k] = false;
+                        } else {
+                            out[k] = 0.0;
+                            mask[k] = true;
+                        }
+                    }
+                }
+            }
+        }
+        valid as f64 / (f * f) as f64
+    }
+
+    #[test]
+    fn tabulated_axes_sample_what_the_per_sample_maths_did() {
+        use rand::Rng;
+        let (w, h) = (97u32, 71u32);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        let depth = DepthImage {
+            width: w,
+            height: h,
+            data_m: (0..w * h)
+                .map(|_| {
+                    if rng.random_bool(0.1) {
+                        0.0
+                    } else {
+                        rng.random_range(0.5f32..2.0)
+                    }
+                })
+                .collect(),
+        };
+        let color = ColorImage {
+            width: w,
+            height: h,
+            data: (0..w * h)
+                .map(|_| [rng.random::<u8>(), rng.random::<u8>(), rng.random::<u8>()])
+                .collect(),
+        };
+        for trial in 0..400 {
+            let layout = FeatureLayout {
+                feature_px: [32, 16, 8][trial % 3],
+                use_color: trial % 5 != 0,
+                color_weight: 0.7,
+                chromaticity: false,
+            };
+            let rotation_rad = match trial % 4 {
+                0 | 1 => 0.0,
+                2 => -0.0,
+                _ => rng.random_range(-3.2..3.2),
+            };
+            let p = CropParams {
+                centre_px: [rng.random_range(-20.0..117.0), rng.random_range(-20.0..91.0)],
+                side_px: rng.random_range(3.0..120.0),
+                rotation_rad,
+                z_centre_m: rng.random_range(0.5..2.0),
+                box_m: rng.random_range(0.05..0.4),
+                zero_is_far: trial % 7 == 0,
+            };
+            let img = (trial % 6 != 1).then_some(&color);
+            let (mut x0, mut m0) = (vec![0f32; layout.dim()], vec![false; layout.dim()]);
+            let (mut x1, mut m1) = (vec![0f32; layout.dim()], vec![false; layout.dim()]);
+            let s0 = sample_crop_reference(&layout, &depth, img, &p, &mut x0, &mut m0);
+            let s1 = sample_crop(&layout, &depth, img, &p, &mut x1, &mut m1);
+            assert_eq!(s0.to_bits(), s1.to_bits(), "trial {trial}");
+            assert_eq!(m0, m1, "trial {trial}");
+            let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<u32>>();
+            assert_eq!(bits(&x0), bits(&x1), "trial {trial}: {p:?}");
+        }
     }
 
     fn rms(a: &[f32], b: &[f32]) -> f32 {
