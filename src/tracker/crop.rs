@@ -520,32 +520,7 @@ fn suppress_plane_impl(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has
         return false;
     }
     let scored = if steep { &all } else { &pts };
-    let m = pts.len();
-    let residuals = |pl: [f32; 3], out: &mut Vec<f32>| {
-        out.clear();
-        out.extend(scored.iter().map(|(u, v, z, _)| {
-            let p = pl[0] + pl[1] * u + pl[2] * v;
-            (z - if steep { p.clamp(0.0, 1.0) } else { p }).abs()
-        }));
-    };
-    let mut buf = Vec::with_capacity(scored.len());
-    let mut best: Option<([f32; 3], f32)> = None;
-    // deterministic triples spread over the ring
-    for t in 0..48usize {
-        let a = (t * 7919) % m;
-        let b = (a + m / 3 + t * 13) % m;
-        let c = (a + 2 * m / 3 + t * 29) % m;
-        let Some(pl) = plane_through(&pts[a], &pts[b], &pts[c]) else {
-            continue;
-        };
-        residuals(pl, &mut buf);
-        let mid = buf.len() / 2;
-        buf.select_nth_unstable_by(mid, |p, q| p.total_cmp(q));
-        let med = buf[mid];
-        if best.is_none_or(|(_, bm)| med < bm) {
-            best = Some((pl, med));
-        }
-    }
+    let best = least_median_plane(&pts, scored, steep, true);
     let Some((pl, med)) = best else { return false };
     let sigma0 = if steep {
         // noise scale from the in-range cells (saturated ones fit exactly)
@@ -697,6 +672,53 @@ fn suppress_plane_impl(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has
     true
 }
 
+/// The least-median-of-squares plane of a crop's ring: of the planes through 48 deterministic
+/// triples of `pts` (in-range ring cells), the first with the lowest median absolute residual
+/// over `scored` (against the clamped prediction when `steep`), with that median. With
+/// `prune`, a candidate is rejected by counting the residuals below the best median so far
+/// (its median is lower only if more than half of them are), so most candidates need no
+/// selection; the answer is the same as without.
+fn least_median_plane(
+    pts: &[(f32, f32, f32, usize)],
+    scored: &[(f32, f32, f32, usize)],
+    steep: bool,
+    prune: bool,
+) -> Option<([f32; 3], f32)> {
+    let m = pts.len();
+    let residuals = |pl: [f32; 3], out: &mut Vec<f32>| {
+        out.clear();
+        out.extend(scored.iter().map(|(u, v, z, _)| {
+            let p = pl[0] + pl[1] * u + pl[2] * v;
+            (z - if steep { p.clamp(0.0, 1.0) } else { p }).abs()
+        }));
+    };
+    let mut buf = Vec::with_capacity(scored.len());
+    let mut best: Option<([f32; 3], f32)> = None;
+    // deterministic triples spread over the ring
+    for t in 0..48usize {
+        let a = (t * 7919) % m;
+        let b = (a + m / 3 + t * 13) % m;
+        let c = (a + 2 * m / 3 + t * 29) % m;
+        let Some(pl) = plane_through(&pts[a], &pts[b], &pts[c]) else {
+            continue;
+        };
+        residuals(pl, &mut buf);
+        let mid = buf.len() / 2;
+        if prune
+            && let Some((_, bm)) = best
+            && buf.iter().filter(|r| **r < bm).count() <= mid
+        {
+            continue;
+        }
+        buf.select_nth_unstable_by(mid, |p, q| p.total_cmp(q));
+        let med = buf[mid];
+        if best.is_none_or(|(_, bm)| med < bm) {
+            best = Some((pl, med));
+        }
+    }
+    best
+}
+
 /// The plane `z = a + b u + c v` through three points, `None` when they are collinear.
 fn plane_through(
     p: &(f32, f32, f32, usize),
@@ -732,6 +754,126 @@ pub fn central_median_depth(layout: &FeatureLayout, x: &[f32], mask: &[bool]) ->
     let q = v.len() / 4;
     v.select_nth_unstable_by(q, |a, b| a.total_cmp(b));
     Some(v[q])
+}
+
+#[cfg(test)]
+/// The per-sample `sample_crop` as it was before its axes were tabulated: the reference
+/// that the tabulated one must match bit for bit.
+pub(crate) fn sample_crop_reference(
+    layout: &FeatureLayout,
+    depth: &DepthImage,
+    color: Option<&ColorImage>,
+    p: &CropParams,
+    out: &mut [f32],
+    mask: &mut [bool],
+) -> f64 {
+    let f = layout.feature_px;
+    let (w, h) = (depth.width as i64, depth.height as i64);
+    let (s, c) = p.rotation_rad.sin_cos();
+    // source pixel of a crop offset (in crop pixels from the centre)
+    let src = |qx: f64, qy: f64| -> Option<usize> {
+        // T_theta(q) = T_0(Rz(-theta) q)
+        let x = p.centre_px[0] + c * qx + s * qy;
+        let y = p.centre_px[1] - s * qx + c * qy;
+        let (xi, yi) = (pixel_index(x), pixel_index(y));
+        if xi < 0 || yi < 0 || xi >= w || yi >= h {
+            None
+        } else {
+            Some((yi * w + xi) as usize)
+        }
+    };
+    // unclamped here: the noise estimate and the median filter of [`denoise_depth`] need
+    // the values beyond the normalisation box; it clamps
+    let norm = |d: f32| -> Option<f32> {
+        if d > 0.0 && d.is_finite() {
+            Some(((d as f64 - p.z_centre_m) / p.box_m + 0.5) as f32)
+        } else if p.zero_is_far {
+            Some(1.0)
+        } else {
+            None
+        }
+    };
+    let cell = p.side_px / f as f64;
+    let mut valid = 0usize;
+    for i in 0..f {
+        for j in 0..f {
+            let mut sum = 0.0f32;
+            let mut n = 0;
+            for si in 0..SUBSAMPLES {
+                for sj in 0..SUBSAMPLES {
+                    let qx = (j as f64 + (sj as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0;
+                    let qy = (i as f64 + (si as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0;
+                    let v = match src(qx, qy) {
+                        Some(k) => norm(depth.data_m[k]),
+                        None => p.zero_is_far.then_some(1.0),
+                    };
+                    if let Some(v) = v {
+                        sum += v;
+                        n += 1;
+                    }
+                }
+            }
+            let k = i * f + j;
+            if n > 0 {
+                out[k] = sum / n as f32;
+                mask[k] = false;
+                valid += 1;
+            } else {
+                out[k] = 0.0;
+                mask[k] = true;
+            }
+        }
+    }
+    denoise_depth(layout, &mut out[..f * f], &mask[..f * f]);
+    if layout.use_color {
+        let fc = layout.color_px();
+        let ccell = p.side_px / fc as f64;
+        let base = layout.depth_len();
+        for i in 0..fc {
+            for j in 0..fc {
+                let mut sum = [0.0f32; 3];
+                let mut n = 0;
+                for si in 0..SUBSAMPLES {
+                    for sj in 0..SUBSAMPLES {
+                        let qx = (j as f64 + (sj as f64 + 0.5) / SUBSAMPLES as f64) * ccell - p.side_px / 2.0;
+                        let qy = (i as f64 + (si as f64 + 0.5) / SUBSAMPLES as f64) * ccell - p.side_px / 2.0;
+                        let k = src(qx, qy);
+                        // object or background: the (denoised) depth cell under this sample,
+                        // not the raw pixel (far cameras' per-pixel noise would flip it)
+                        let (di, dj) = (
+                            (i * f / fc + si * f / (fc * SUBSAMPLES)).min(f - 1),
+                            (j * f / fc + sj * f / (fc * SUBSAMPLES)).min(f - 1),
+                        );
+                        let d = (!mask[di * f + dj]).then(|| out[di * f + dj]);
+                        let Some(d) = d else { continue };
+                        let rgb = match (k, color) {
+                            (Some(k), Some(img)) if d < 1.0 => {
+                                let c = img.data[k];
+                                [c[0] as f32 / 255.0, c[1] as f32 / 255.0, c[2] as f32 / 255.0]
+                            }
+                            (_, Some(_)) => [BACKGROUND_GREY; 3],
+                            (_, None) => continue,
+                        };
+                        for ch in 0..3 {
+                            sum[ch] += rgb[ch];
+                        }
+                        n += 1;
+                    }
+                }
+                for (ch, sc) in sum.iter().enumerate() {
+                    let k = base + (i * fc + j) * 3 + ch;
+                    if n > 0 {
+                        out[k] = sc / n as f32 * layout.color_weight;
+                        mask[k] = false;
+                    } else {
+                        out[k] = 0.0;
+                        mask[k] = true;
+                    }
+                }
+            }
+        }
+    }
+    valid as f64 / (f * f) as f64
 }
 
 #[cfg(test)]
@@ -815,123 +957,46 @@ mod tests {
         (layout, truth, noisy)
     }
 
-    /// The per-sample `sample_crop` as it was before its axes were tabulated: the reference
-    /// that the tabulated one must match bit for bit.
-    fn sample_crop_reference(
-        layout: &FeatureLayout,
-        depth: &DepthImage,
-        color: Option<&ColorImage>,
-        p: &CropParams,
-        out: &mut [f32],
-        mask: &mut [bool],
-    ) -> f64 {
-        let f = layout.feature_px;
-        let (w, h) = (depth.width as i64, depth.height as i64);
-        let (s, c) = p.rotation_rad.sin_cos();
-        // source pixel of a crop offset (in crop pixels from the centre)
-        let src = |qx: f64, qy: f64| -> Option<usize> {
-            // T_theta(q) = T_0(Rz(-theta) q)
-            let x = p.centre_px[0] + c * qx + s * qy;
-            let y = p.centre_px[1] - s * qx + c * qy;
-            let (xi, yi) = (pixel_index(x), pixel_index(y));
-            if xi < 0 || yi < 0 || xi >= w || yi >= h {
-                None
-            } else {
-                Some((yi * w + xi) as usize)
+    #[test]
+    fn pruned_least_median_plane_is_the_plain_one() {
+        use rand::Rng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
+        for trial in 0..500 {
+            let n = rng.random_range(8..300);
+            let (a, b, c) = (
+                rng.random_range(-0.5f32..1.5),
+                rng.random_range(-2.0f32..2.0),
+                rng.random_range(-2.0f32..2.0),
+            );
+            let outliers = rng.random_range(0.0..0.7);
+            let noise = [0.0f32, 0.01, 0.2][trial % 3];
+            let all: Vec<(f32, f32, f32, usize)> = (0..n)
+                .map(|k| {
+                    let (u, v) = (rng.random_range(-0.5f32..0.5), rng.random_range(-0.5f32..0.5));
+                    let z = if rng.random_bool(outliers) {
+                        rng.random_range(-1.0f32..2.0)
+                    } else {
+                        a + b * u + c * v + noise * rng.random_range(-1.0f32..1.0)
+                    };
+                    // quantised depths make ties between candidates' medians
+                    let z = if trial % 4 == 0 { (z * 8.0).round() / 8.0 } else { z };
+                    (u, v, z, k)
+                })
+                .collect();
+            let pts: Vec<(f32, f32, f32, usize)> = all.iter().filter(|p| p.2 > 0.0 && p.2 < 1.0).copied().collect();
+            if pts.len() < 3 {
+                continue;
             }
-        };
-        // unclamped here: the noise estimate and the median filter of [`denoise_depth`] need
-        // the values beyond the normalisation box; it clamps
-        let norm = |d: f32| -> Option<f32> {
-            if d > 0.0 && d.is_finite() {
-                Some(((d as f64 - p.z_centre_m) / p.box_m + 0.5) as f32)
-            } else if p.zero_is_far {
-                Some(1.0)
-            } else {
-                None
-            }
-        };
-        let cell = p.side_px / f as f64;
-        let mut valid = 0usize;
-        for i in 0..f {
-            for j in 0..f {
-                let mut sum = 0.0f32;
-                let mut n = 0;
-                for si in 0..SUBSAMPLES {
-                    for sj in 0..SUBSAMPLES {
-                        let qx = (j as f64 + (sj as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0;
-                        let qy = (i as f64 + (si as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0;
-                        let v = match src(qx, qy) {
-                            Some(k) => norm(depth.data_m[k]),
-                            None => p.zero_is_far.then_some(1.0),
-                        };
-                        if let Some(v) = v {
-                            sum += v;
-                            n += 1;
-                        }
-                    }
-                }
-                let k = i * f + j;
-                if n > 0 {
-                    out[k] = sum / n as f32;
-                    mask[k] = false;
-                    valid += 1;
-                } else {
-                    out[k] = 0.0;
-                    mask[k] = true;
-                }
+            for steep in [false, true] {
+                let scored = if steep { &all } else { &pts };
+                let bits = |r: Option<([f32; 3], f32)>| r.map(|(p, m)| (p.map(f32::to_bits), m.to_bits()));
+                assert_eq!(
+                    bits(least_median_plane(&pts, scored, steep, true)),
+                    bits(least_median_plane(&pts, scored, steep, false)),
+                    "trial {trial}, steep {steep}"
+                );
             }
         }
-        denoise_depth(layout, &mut out[..f * f], &mask[..f * f]);
-        if layout.use_color {
-            let fc = layout.color_px();
-            let ccell = p.side_px / fc as f64;
-            let base = layout.depth_len();
-            for i in 0..fc {
-                for j in 0..fc {
-                    let mut sum = [0.0f32; 3];
-                    let mut n = 0;
-                    for si in 0..SUBSAMPLES {
-                        for sj in 0..SUBSAMPLES {
-                            let qx = (j as f64 + (sj as f64 + 0.5) / SUBSAMPLES as f64) * ccell - p.side_px / 2.0;
-                            let qy = (i as f64 + (si as f64 + 0.5) / SUBSAMPLES as f64) * ccell - p.side_px / 2.0;
-                            let k = src(qx, qy);
-                            // object or background: the (denoised) depth cell under this sample,
-                            // not the raw pixel (far cameras' per-pixel noise would flip it)
-                            let (di, dj) = (
-                                (i * f / fc + si * f / (fc * SUBSAMPLES)).min(f - 1),
-                                (j * f / fc + sj * f / (fc * SUBSAMPLES)).min(f - 1),
-                            );
-                            let d = (!mask[di * f + dj]).then(|| out[di * f + dj]);
-                            let Some(d) = d else { continue };
-                            let rgb = match (k, color) {
-                                (Some(k), Some(img)) if d < 1.0 => {
-                                    let c = img.data[k];
-                                    [c[0] as f32 / 255.0, c[1] as f32 / 255.0, c[2] as f32 / 255.0]
-                                }
-                                (_, Some(_)) => [BACKGROUND_GREY; 3],
-                                (_, None) => continue,
-                            };
-                            for ch in 0..3 {
-                                sum[ch] += rgb[ch];
-                            }
-                            n += 1;
-                        }
-                    }
-                    for (ch, sc) in sum.iter().enumerate() {
-                        let k = base + (i * fc + j) * 3 + ch;
-                        if n > 0 {
-                            out[k] = sc / n as f32 * layout.color_weight;
-                            mask[k] = false;
-                        } else {
-                            out[k] = 0.0;
-                            mask[k] = true;
-                        }
-                    }
-                }
-            }
-        }
-        valid as f64 / (f * f) as f64
     }
 
     #[test]
