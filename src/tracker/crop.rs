@@ -318,6 +318,20 @@ const DENOISE_MIN_SIGMA: f32 = 0.25;
 /// the triples, so the median reads the sensor's noise rather than the scene's shape. `None`
 /// with too few triples.
 pub fn depth_noise_sigma(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Option<f32> {
+    let mut d = second_differences(layout, x, mask)?;
+    let m = d.len() / 2;
+    d.select_nth_unstable_by(m, f32::total_cmp);
+    Some(d[m] / noise_per_median())
+}
+
+/// The median absolute second difference per Gaussian sigma: `a - 2b + c` of three
+/// `N(0, s^2)` has sigma `sqrt(6) s`, and its median `|.|` is `0.6745 sqrt(6) s`.
+fn noise_per_median() -> f32 {
+    0.6745 * 6f32.sqrt()
+}
+
+/// The absolute second differences behind [`depth_noise_sigma`], `None` with fewer than 16.
+fn second_differences(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Option<Vec<f32>> {
     let f = layout.feature_px;
     // (-1, 2): the object's depth band with room for noise, not the far background
     let ok = |k: usize| !mask[k] && x[k] > -1.0 && x[k] < 2.0;
@@ -330,13 +344,19 @@ pub fn depth_noise_sigma(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Op
             }
         }
     }
-    if d.len() < 16 {
-        return None;
-    }
+    (d.len() >= 16).then_some(d)
+}
+
+/// The median filter's radius for a grid (see [`denoise_depth`]): `None` where
+/// [`depth_noise_sigma`] is at most `DENOISE_MIN_SIGMA` (or unknown), 1 up to 0.5, else 2.
+/// The median exceeds a threshold exactly when at most half of the differences (`m` of them,
+/// `m` the median's rank) do not, so two counts answer without the selection.
+fn denoise_radius(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Option<i64> {
+    let d = second_differences(layout, x, mask)?;
     let m = d.len() / 2;
-    d.select_nth_unstable_by(m, f32::total_cmp);
-    // a - 2b + c of three N(0, s^2): sigma sqrt(6) s, median |.| 0.6745 sqrt(6) s
-    Some(d[m] / (0.6745 * 6f32.sqrt()))
+    let k = noise_per_median();
+    let exceeds = |t: f32| d.iter().filter(|v| !(**v / k > t)).count() <= m;
+    exceeds(DENOISE_MIN_SIGMA).then(|| if exceeds(0.5) { 2 } else { 1 })
 }
 
 /// Denoises a grid of normalised depth cells in place, then clamps it to [0, 1].
@@ -349,9 +369,7 @@ pub fn depth_noise_sigma(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Op
 /// the templates, the training crops and observed crops all go through the same function.
 pub fn denoise_depth(layout: &FeatureLayout, x: &mut [f32], mask: &[bool]) {
     let f = layout.feature_px;
-    let sigma = depth_noise_sigma(layout, x, mask).unwrap_or(0.0);
-    if sigma > DENOISE_MIN_SIGMA {
-        let r: i64 = if sigma > 0.5 { 2 } else { 1 };
+    if let Some(r) = denoise_radius(layout, x, mask) {
         let src = x[..f * f].to_vec();
         let mut win: Vec<f32> = Vec::with_capacity(((2 * r + 1) * (2 * r + 1)) as usize);
         for i in 0..f as i64 {
@@ -997,6 +1015,38 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn denoise_radius_is_what_the_noise_estimate_says() {
+        use rand::Rng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(33);
+        let mut radii = [0usize; 3];
+        for trial in 0..600 {
+            let layout = FeatureLayout {
+                feature_px: [32, 8, 4][trial % 3],
+                use_color: false,
+                color_weight: 1.0,
+                chromaticity: false,
+            };
+            let sigma = rng.random_range(0.0f32..0.8);
+            let (_, _, x) = block_cells(sigma, trial as u64);
+            let f = layout.feature_px;
+            // a sub-grid, quantised so that medians sit on the thresholds too, some cells masked
+            let x: Vec<f32> = (0..f * f)
+                .map(|k| {
+                    let v = x[(k / f) * 32 + k % f];
+                    if trial % 5 == 0 { (v * 16.0).round() / 16.0 } else { v }
+                })
+                .collect();
+            let mask: Vec<bool> = (0..f * f).map(|_| rng.random_bool(0.1)).collect();
+            let sigma = depth_noise_sigma(&layout, &x, &mask).unwrap_or(0.0);
+            let want = (sigma > DENOISE_MIN_SIGMA).then(|| if sigma > 0.5 { 2 } else { 1 });
+            let got = denoise_radius(&layout, &x, &mask);
+            assert_eq!(got, want, "trial {trial}: sigma {sigma}");
+            radii[got.unwrap_or(0) as usize] += 1;
+        }
+        assert!(radii.iter().all(|n| *n > 20), "{radii:?}");
     }
 
     #[test]
