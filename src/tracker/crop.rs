@@ -100,9 +100,9 @@ pub struct CropParams {
 /// Returns the share of depth cells that are valid.
 ///
 /// A sample's source pixel is `T_0(Rz(-theta) q)` for its offset `q` from the centre; the
-/// products of each axis' offsets are computed once per crop ([`SampleAxes`]), and without a
-/// rotation the pixel index is separable (one column per `x` offset, one row per `y` offset),
-/// the same arithmetic as per sample.
+/// products of each axis' offsets are computed once per crop (`SampleAxes`), and without a
+/// rotation the pixel index is separable (one column per `x` offset, one row per `y` offset):
+/// the same arithmetic as per sample, so the same pixels.
 pub fn sample_crop(
     layout: &FeatureLayout,
     depth: &DepthImage,
@@ -206,17 +206,19 @@ pub fn sample_crop(
 }
 
 /// The source pixels of a crop's `n x n` cells with their sub-samples, per axis: sample
-/// `q = cell * SUBSAMPLES + sub` has the offset `(cell + (sub + 0.5) / SUBSAMPLES) * side / n
-/// - side / 2` along each axis, and sample `(qi, qj)` reads pixel
-/// `(cx + c ox[qj] + s oy[qi], cy - s ox[qj] + c oy[qi])` (`c, s` the rotation's cosine and
-/// sine), evaluated in that order so that every sample lands where it always did.
+/// `q = cell * SUBSAMPLES + sub` lies at the offset
+/// `(cell + (sub + 0.5) / SUBSAMPLES) * side / n - side / 2` along each axis, and sample
+/// `(qi, qj)` reads pixel `(cx + c ox[qj] + s oy[qi], cy - s ox[qj] + c oy[qi])` (`c, s` the
+/// rotation's cosine and sine), summed in that order so that every sample reads the pixel it
+/// read when each was computed on its own.
 struct SampleAxes {
     /// Per `x` sample: `cx + c ox`, `cy - s ox`.
     col: Vec<(f64, f64)>,
     /// Per `y` sample: `s oy`, `c oy`.
     row: Vec<(f64, f64)>,
     /// Without a rotation (`s = 0`, `c = 1`): the pixel column per `x` sample and the row per
-    /// `y` sample (`None`: outside the image); adding `s ox = 0` changes no sum.
+    /// `y` sample (`None`: outside the image); the rotation's terms are then zeros, which change
+    /// no sum.
     separable: Option<(Vec<Option<i64>>, Vec<Option<i64>>)>,
     w: i64,
     h: i64,
