@@ -205,6 +205,9 @@ pub fn sample_crop(
     valid as f64 / (f * f) as f64
 }
 
+/// A pixel column (or row) per sample, `None` outside the image.
+type PixelIndices = Vec<Option<i64>>;
+
 /// The source pixels of a crop's `n x n` cells with their sub-samples, per axis: sample
 /// `q = cell * SUBSAMPLES + sub` lies at the offset
 /// `(cell + (sub + 0.5) / SUBSAMPLES) * side / n - side / 2` along each axis, and sample
@@ -219,7 +222,7 @@ struct SampleAxes {
     /// Without a rotation (`s = 0`, `c = 1`): the pixel column per `x` sample and the row per
     /// `y` sample (`None`: outside the image); the rotation's terms are then zeros, which change
     /// no sum.
-    separable: Option<(Vec<Option<i64>>, Vec<Option<i64>>)>,
+    separable: Option<(PixelIndices, PixelIndices)>,
     w: i64,
     h: i64,
 }
@@ -357,7 +360,12 @@ fn denoise_radius(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Option<i6
     let d = second_differences(layout, x, mask)?;
     let m = d.len() / 2;
     let k = noise_per_median();
-    let exceeds = |t: f32| d.iter().filter(|v| !(**v / k > t)).count() <= m;
+    let exceeds = |t: f32| {
+        let not_above = d
+            .iter()
+            .filter(|v| (**v / k).partial_cmp(&t) != Some(std::cmp::Ordering::Greater));
+        not_above.count() <= m
+    };
     exceeds(DENOISE_MIN_SIGMA).then(|| if exceeds(0.5) { 2 } else { 1 })
 }
 
@@ -1078,7 +1086,7 @@ mod tests {
                 .collect();
             let mask: Vec<bool> = (0..f * f).map(|_| rng.random_bool(0.1)).collect();
             let sigma = depth_noise_sigma(&layout, &x, &mask).unwrap_or(0.0);
-            let want = (sigma > DENOISE_MIN_SIGMA).then(|| if sigma > 0.5 { 2 } else { 1 });
+            let want = (sigma > DENOISE_MIN_SIGMA).then_some(if sigma > 0.5 { 2 } else { 1 });
             let got = denoise_radius(&layout, &x, &mask);
             assert_eq!(got, want, "trial {trial}: sigma {sigma}");
             radii[got.unwrap_or(0) as usize] += 1;
