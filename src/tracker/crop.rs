@@ -98,6 +98,11 @@ pub struct CropParams {
 
 /// Samples the features of one crop into `out` (length `layout.dim()`), masks into `mask`.
 /// Returns the share of depth cells that are valid.
+///
+/// A sample's source pixel is `T_0(Rz(-theta) q)` for its offset `q` from the centre; the
+/// products of each axis' offsets are computed once per crop (`SampleAxes`), and without a
+/// rotation the pixel index is separable (one column per `x` offset, one row per `y` offset):
+/// the same arithmetic as per sample, so the same pixels.
 pub fn sample_crop(
     layout: &FeatureLayout,
     depth: &DepthImage,
@@ -109,18 +114,6 @@ pub fn sample_crop(
     let f = layout.feature_px;
     let (w, h) = (depth.width as i64, depth.height as i64);
     let (s, c) = p.rotation_rad.sin_cos();
-    // source pixel of a crop offset (in crop pixels from the centre)
-    let src = |qx: f64, qy: f64| -> Option<usize> {
-        // T_theta(q) = T_0(Rz(-theta) q)
-        let x = p.centre_px[0] + c * qx + s * qy;
-        let y = p.centre_px[1] - s * qx + c * qy;
-        let (xi, yi) = (pixel_index(x), pixel_index(y));
-        if xi < 0 || yi < 0 || xi >= w || yi >= h {
-            None
-        } else {
-            Some((yi * w + xi) as usize)
-        }
-    };
     // unclamped here: the noise estimate and the median filter of [`denoise_depth`] need
     // the values beyond the normalisation box; it clamps
     let norm = |d: f32| -> Option<f32> {
@@ -132,7 +125,7 @@ pub fn sample_crop(
             None
         }
     };
-    let cell = p.side_px / f as f64;
+    let axes = SampleAxes::new(p, f, s, c, w, h);
     let mut valid = 0usize;
     for i in 0..f {
         for j in 0..f {
@@ -140,9 +133,7 @@ pub fn sample_crop(
             let mut n = 0;
             for si in 0..SUBSAMPLES {
                 for sj in 0..SUBSAMPLES {
-                    let qx = (j as f64 + (sj as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0;
-                    let qy = (i as f64 + (si as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0;
-                    let v = match src(qx, qy) {
+                    let v = match axes.src(i * SUBSAMPLES + si, j * SUBSAMPLES + sj) {
                         Some(k) => norm(depth.data_m[k]),
                         None => p.zero_is_far.then_some(1.0),
                     };
@@ -166,7 +157,11 @@ pub fn sample_crop(
     denoise_depth(layout, &mut out[..f * f], &mask[..f * f]);
     if layout.use_color {
         let fc = layout.color_px();
-        let ccell = p.side_px / fc as f64;
+        let axes = SampleAxes::new(p, fc, s, c, w, h);
+        // the depth cell under each colour sample, per axis
+        let under: Vec<usize> = (0..fc * SUBSAMPLES)
+            .map(|q| (q / SUBSAMPLES * f / fc + q % SUBSAMPLES * f / (fc * SUBSAMPLES)).min(f - 1))
+            .collect();
         let base = layout.depth_len();
         for i in 0..fc {
             for j in 0..fc {
@@ -174,18 +169,13 @@ pub fn sample_crop(
                 let mut n = 0;
                 for si in 0..SUBSAMPLES {
                     for sj in 0..SUBSAMPLES {
-                        let qx = (j as f64 + (sj as f64 + 0.5) / SUBSAMPLES as f64) * ccell - p.side_px / 2.0;
-                        let qy = (i as f64 + (si as f64 + 0.5) / SUBSAMPLES as f64) * ccell - p.side_px / 2.0;
-                        let k = src(qx, qy);
+                        let (qi, qj) = (i * SUBSAMPLES + si, j * SUBSAMPLES + sj);
                         // object or background: the (denoised) depth cell under this sample,
                         // not the raw pixel (far cameras' per-pixel noise would flip it)
-                        let (di, dj) = (
-                            (i * f / fc + si * f / (fc * SUBSAMPLES)).min(f - 1),
-                            (j * f / fc + sj * f / (fc * SUBSAMPLES)).min(f - 1),
-                        );
-                        let d = (!mask[di * f + dj]).then(|| out[di * f + dj]);
+                        let dk = under[qi] * f + under[qj];
+                        let d = (!mask[dk]).then(|| out[dk]);
                         let Some(d) = d else { continue };
-                        let rgb = match (k, color) {
+                        let rgb = match (axes.src(qi, qj), color) {
                             (Some(k), Some(img)) if d < 1.0 => {
                                 let c = img.data[k];
                                 [c[0] as f32 / 255.0, c[1] as f32 / 255.0, c[2] as f32 / 255.0]
@@ -213,6 +203,72 @@ pub fn sample_crop(
         }
     }
     valid as f64 / (f * f) as f64
+}
+
+/// A pixel column (or row) per sample, `None` outside the image.
+type PixelIndices = Vec<Option<i64>>;
+
+/// The source pixels of a crop's `n x n` cells with their sub-samples, per axis: sample
+/// `q = cell * SUBSAMPLES + sub` lies at the offset
+/// `(cell + (sub + 0.5) / SUBSAMPLES) * side / n - side / 2` along each axis, and sample
+/// `(qi, qj)` reads pixel `(cx + c ox[qj] + s oy[qi], cy - s ox[qj] + c oy[qi])` (`c, s` the
+/// rotation's cosine and sine), summed in that order so that every sample reads the pixel it
+/// read when each was computed on its own.
+struct SampleAxes {
+    /// Per `x` sample: `cx + c ox`, `cy - s ox`.
+    col: Vec<(f64, f64)>,
+    /// Per `y` sample: `s oy`, `c oy`.
+    row: Vec<(f64, f64)>,
+    /// Without a rotation (`s = 0`, `c = 1`): the pixel column per `x` sample and the row per
+    /// `y` sample (`None`: outside the image); the rotation's terms are then zeros, which change
+    /// no sum.
+    separable: Option<(PixelIndices, PixelIndices)>,
+    w: i64,
+    h: i64,
+}
+
+impl SampleAxes {
+    fn new(p: &CropParams, n: usize, s: f64, c: f64, w: i64, h: i64) -> Self {
+        let cell = p.side_px / n as f64;
+        let offsets: Vec<f64> = (0..n * SUBSAMPLES)
+            .map(|q| {
+                let (a, b) = (q / SUBSAMPLES, q % SUBSAMPLES);
+                (a as f64 + (b as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0
+            })
+            .collect();
+        let col: Vec<(f64, f64)> = offsets
+            .iter()
+            .map(|o| (p.centre_px[0] + c * o, p.centre_px[1] - s * o))
+            .collect();
+        let row: Vec<(f64, f64)> = offsets.iter().map(|o| (s * o, c * o)).collect();
+        let separable = (s == 0.0 && c == 1.0).then(|| {
+            let inside = |v: f64, lim: i64| Some(pixel_index(v)).filter(|i| *i >= 0 && *i < lim);
+            (
+                col.iter().map(|(x, _)| inside(*x, w)).collect(),
+                offsets.iter().map(|o| inside(p.centre_px[1] + o, h)).collect(),
+            )
+        });
+        Self {
+            col,
+            row,
+            separable,
+            w,
+            h,
+        }
+    }
+
+    /// The flat index of the pixel under sample `(qi, qj)`, `None` outside the image.
+    #[inline]
+    fn src(&self, qi: usize, qj: usize) -> Option<usize> {
+        let (xi, yi) = match &self.separable {
+            Some((cols, rows)) => (cols[qj]?, rows[qi]?),
+            None => (
+                pixel_index(self.col[qj].0 + self.row[qi].0),
+                pixel_index(self.col[qj].1 + self.row[qi].1),
+            ),
+        };
+        (xi >= 0 && yi >= 0 && xi < self.w && yi < self.h).then(|| (yi * self.w + xi) as usize)
+    }
 }
 
 /// Below this brightness (before `color_weight`, summed over the channels: a third of it
@@ -267,6 +323,20 @@ const DENOISE_MIN_SIGMA: f32 = 0.25;
 /// the triples, so the median reads the sensor's noise rather than the scene's shape. `None`
 /// with too few triples.
 pub fn depth_noise_sigma(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Option<f32> {
+    let mut d = second_differences(layout, x, mask)?;
+    let m = d.len() / 2;
+    d.select_nth_unstable_by(m, f32::total_cmp);
+    Some(d[m] / noise_per_median())
+}
+
+/// The median absolute second difference per Gaussian sigma: `a - 2b + c` of three
+/// `N(0, s^2)` has sigma `sqrt(6) s`, and its median `|.|` is `0.6745 sqrt(6) s`.
+fn noise_per_median() -> f32 {
+    0.6745 * 6f32.sqrt()
+}
+
+/// The absolute second differences behind [`depth_noise_sigma`], `None` with fewer than 16.
+fn second_differences(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Option<Vec<f32>> {
     let f = layout.feature_px;
     // (-1, 2): the object's depth band with room for noise, not the far background
     let ok = |k: usize| !mask[k] && x[k] > -1.0 && x[k] < 2.0;
@@ -279,13 +349,24 @@ pub fn depth_noise_sigma(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Op
             }
         }
     }
-    if d.len() < 16 {
-        return None;
-    }
+    (d.len() >= 16).then_some(d)
+}
+
+/// The median filter's radius for a grid (see [`denoise_depth`]): `None` where
+/// [`depth_noise_sigma`] is at most `DENOISE_MIN_SIGMA` (or unknown), 1 up to 0.5, else 2.
+/// The median exceeds a threshold exactly when at most half of the differences (`m` of them,
+/// `m` the median's rank) do not, so two counts answer without the selection.
+fn denoise_radius(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Option<i64> {
+    let d = second_differences(layout, x, mask)?;
     let m = d.len() / 2;
-    d.select_nth_unstable_by(m, f32::total_cmp);
-    // a - 2b + c of three N(0, s^2): sigma sqrt(6) s, median |.| 0.6745 sqrt(6) s
-    Some(d[m] / (0.6745 * 6f32.sqrt()))
+    let k = noise_per_median();
+    let exceeds = |t: f32| {
+        let not_above = d
+            .iter()
+            .filter(|v| (**v / k).partial_cmp(&t) != Some(std::cmp::Ordering::Greater));
+        not_above.count() <= m
+    };
+    exceeds(DENOISE_MIN_SIGMA).then(|| if exceeds(0.5) { 2 } else { 1 })
 }
 
 /// Denoises a grid of normalised depth cells in place, then clamps it to [0, 1].
@@ -298,9 +379,7 @@ pub fn depth_noise_sigma(layout: &FeatureLayout, x: &[f32], mask: &[bool]) -> Op
 /// the templates, the training crops and observed crops all go through the same function.
 pub fn denoise_depth(layout: &FeatureLayout, x: &mut [f32], mask: &[bool]) {
     let f = layout.feature_px;
-    let sigma = depth_noise_sigma(layout, x, mask).unwrap_or(0.0);
-    if sigma > DENOISE_MIN_SIGMA {
-        let r: i64 = if sigma > 0.5 { 2 } else { 1 };
+    if let Some(r) = denoise_radius(layout, x, mask) {
         let src = x[..f * f].to_vec();
         let mut win: Vec<f32> = Vec::with_capacity(((2 * r + 1) * (2 * r + 1)) as usize);
         for i in 0..f as i64 {
@@ -469,32 +548,7 @@ fn suppress_plane_impl(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has
         return false;
     }
     let scored = if steep { &all } else { &pts };
-    let m = pts.len();
-    let residuals = |pl: [f32; 3], out: &mut Vec<f32>| {
-        out.clear();
-        out.extend(scored.iter().map(|(u, v, z, _)| {
-            let p = pl[0] + pl[1] * u + pl[2] * v;
-            (z - if steep { p.clamp(0.0, 1.0) } else { p }).abs()
-        }));
-    };
-    let mut buf = Vec::with_capacity(scored.len());
-    let mut best: Option<([f32; 3], f32)> = None;
-    // deterministic triples spread over the ring
-    for t in 0..48usize {
-        let a = (t * 7919) % m;
-        let b = (a + m / 3 + t * 13) % m;
-        let c = (a + 2 * m / 3 + t * 29) % m;
-        let Some(pl) = plane_through(&pts[a], &pts[b], &pts[c]) else {
-            continue;
-        };
-        residuals(pl, &mut buf);
-        let mid = buf.len() / 2;
-        buf.select_nth_unstable_by(mid, |p, q| p.total_cmp(q));
-        let med = buf[mid];
-        if best.is_none_or(|(_, bm)| med < bm) {
-            best = Some((pl, med));
-        }
-    }
+    let best = least_median_plane(&pts, scored, steep);
     let Some((pl, med)) = best else { return false };
     let sigma0 = if steep {
         // noise scale from the in-range cells (saturated ones fit exactly)
@@ -646,6 +700,55 @@ fn suppress_plane_impl(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has
     true
 }
 
+/// The least-median-of-squares plane of a crop's ring: of the planes through 48 deterministic
+/// triples of `pts` (in-range ring cells), the first with the lowest median absolute residual
+/// over `scored` (against the clamped prediction when `steep`), with that median. A candidate
+/// is rejected by counting the residuals below the best median so far (its median is lower only
+/// if more than half of them are), so most candidates need no selection; the answer is the same
+/// as with one.
+fn least_median_plane(
+    pts: &[(f32, f32, f32, usize)],
+    scored: &[(f32, f32, f32, usize)],
+    steep: bool,
+) -> Option<([f32; 3], f32)> {
+    let m = pts.len();
+    // one array per coordinate, so that the residuals of a candidate vectorise
+    let su: Vec<f32> = scored.iter().map(|p| p.0).collect();
+    let sv: Vec<f32> = scored.iter().map(|p| p.1).collect();
+    let sz: Vec<f32> = scored.iter().map(|p| p.2).collect();
+    let residuals = |pl: [f32; 3], out: &mut Vec<f32>| {
+        out.resize(scored.len(), 0.0);
+        for (((r, u), v), z) in out.iter_mut().zip(&su).zip(&sv).zip(&sz) {
+            let p = pl[0] + pl[1] * u + pl[2] * v;
+            *r = (z - if steep { p.clamp(0.0, 1.0) } else { p }).abs();
+        }
+    };
+    let mut buf = Vec::with_capacity(scored.len());
+    let mut best: Option<([f32; 3], f32)> = None;
+    // deterministic triples spread over the ring
+    for t in 0..48usize {
+        let a = (t * 7919) % m;
+        let b = (a + m / 3 + t * 13) % m;
+        let c = (a + 2 * m / 3 + t * 29) % m;
+        let Some(pl) = plane_through(&pts[a], &pts[b], &pts[c]) else {
+            continue;
+        };
+        residuals(pl, &mut buf);
+        let mid = buf.len() / 2;
+        if let Some((_, bm)) = best
+            && buf.iter().filter(|r| **r < bm).count() <= mid
+        {
+            continue;
+        }
+        buf.select_nth_unstable_by(mid, |p, q| p.total_cmp(q));
+        let med = buf[mid];
+        if best.is_none_or(|(_, bm)| med < bm) {
+            best = Some((pl, med));
+        }
+    }
+    best
+}
+
 /// The plane `z = a + b u + c v` through three points, `None` when they are collinear.
 fn plane_through(
     p: &(f32, f32, f32, usize),
@@ -681,6 +784,126 @@ pub fn central_median_depth(layout: &FeatureLayout, x: &[f32], mask: &[bool]) ->
     let q = v.len() / 4;
     v.select_nth_unstable_by(q, |a, b| a.total_cmp(b));
     Some(v[q])
+}
+
+#[cfg(test)]
+/// The per-sample `sample_crop` as it was before its axes were tabulated: the reference
+/// that the tabulated one must match bit for bit.
+pub(crate) fn sample_crop_reference(
+    layout: &FeatureLayout,
+    depth: &DepthImage,
+    color: Option<&ColorImage>,
+    p: &CropParams,
+    out: &mut [f32],
+    mask: &mut [bool],
+) -> f64 {
+    let f = layout.feature_px;
+    let (w, h) = (depth.width as i64, depth.height as i64);
+    let (s, c) = p.rotation_rad.sin_cos();
+    // source pixel of a crop offset (in crop pixels from the centre)
+    let src = |qx: f64, qy: f64| -> Option<usize> {
+        // T_theta(q) = T_0(Rz(-theta) q)
+        let x = p.centre_px[0] + c * qx + s * qy;
+        let y = p.centre_px[1] - s * qx + c * qy;
+        let (xi, yi) = (pixel_index(x), pixel_index(y));
+        if xi < 0 || yi < 0 || xi >= w || yi >= h {
+            None
+        } else {
+            Some((yi * w + xi) as usize)
+        }
+    };
+    // unclamped here: the noise estimate and the median filter of [`denoise_depth`] need
+    // the values beyond the normalisation box; it clamps
+    let norm = |d: f32| -> Option<f32> {
+        if d > 0.0 && d.is_finite() {
+            Some(((d as f64 - p.z_centre_m) / p.box_m + 0.5) as f32)
+        } else if p.zero_is_far {
+            Some(1.0)
+        } else {
+            None
+        }
+    };
+    let cell = p.side_px / f as f64;
+    let mut valid = 0usize;
+    for i in 0..f {
+        for j in 0..f {
+            let mut sum = 0.0f32;
+            let mut n = 0;
+            for si in 0..SUBSAMPLES {
+                for sj in 0..SUBSAMPLES {
+                    let qx = (j as f64 + (sj as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0;
+                    let qy = (i as f64 + (si as f64 + 0.5) / SUBSAMPLES as f64) * cell - p.side_px / 2.0;
+                    let v = match src(qx, qy) {
+                        Some(k) => norm(depth.data_m[k]),
+                        None => p.zero_is_far.then_some(1.0),
+                    };
+                    if let Some(v) = v {
+                        sum += v;
+                        n += 1;
+                    }
+                }
+            }
+            let k = i * f + j;
+            if n > 0 {
+                out[k] = sum / n as f32;
+                mask[k] = false;
+                valid += 1;
+            } else {
+                out[k] = 0.0;
+                mask[k] = true;
+            }
+        }
+    }
+    denoise_depth(layout, &mut out[..f * f], &mask[..f * f]);
+    if layout.use_color {
+        let fc = layout.color_px();
+        let ccell = p.side_px / fc as f64;
+        let base = layout.depth_len();
+        for i in 0..fc {
+            for j in 0..fc {
+                let mut sum = [0.0f32; 3];
+                let mut n = 0;
+                for si in 0..SUBSAMPLES {
+                    for sj in 0..SUBSAMPLES {
+                        let qx = (j as f64 + (sj as f64 + 0.5) / SUBSAMPLES as f64) * ccell - p.side_px / 2.0;
+                        let qy = (i as f64 + (si as f64 + 0.5) / SUBSAMPLES as f64) * ccell - p.side_px / 2.0;
+                        let k = src(qx, qy);
+                        // object or background: the (denoised) depth cell under this sample,
+                        // not the raw pixel (far cameras' per-pixel noise would flip it)
+                        let (di, dj) = (
+                            (i * f / fc + si * f / (fc * SUBSAMPLES)).min(f - 1),
+                            (j * f / fc + sj * f / (fc * SUBSAMPLES)).min(f - 1),
+                        );
+                        let d = (!mask[di * f + dj]).then(|| out[di * f + dj]);
+                        let Some(d) = d else { continue };
+                        let rgb = match (k, color) {
+                            (Some(k), Some(img)) if d < 1.0 => {
+                                let c = img.data[k];
+                                [c[0] as f32 / 255.0, c[1] as f32 / 255.0, c[2] as f32 / 255.0]
+                            }
+                            (_, Some(_)) => [BACKGROUND_GREY; 3],
+                            (_, None) => continue,
+                        };
+                        for ch in 0..3 {
+                            sum[ch] += rgb[ch];
+                        }
+                        n += 1;
+                    }
+                }
+                for (ch, sc) in sum.iter().enumerate() {
+                    let k = base + (i * fc + j) * 3 + ch;
+                    if n > 0 {
+                        out[k] = sc / n as f32 * layout.color_weight;
+                        mask[k] = false;
+                    } else {
+                        out[k] = 0.0;
+                        mask[k] = true;
+                    }
+                }
+            }
+        }
+    }
+    valid as f64 / (f * f) as f64
 }
 
 #[cfg(test)]
@@ -762,6 +985,170 @@ mod tests {
             .collect();
         let noisy = truth.iter().map(|t| t + n.sample(&mut rng)).collect();
         (layout, truth, noisy)
+    }
+
+    /// The candidate loop of the plane fit as it was (one residual array of tuples, a selection
+    /// per candidate): the reference of [`least_median_plane`].
+    fn least_median_plane_reference(
+        pts: &[(f32, f32, f32, usize)],
+        scored: &[(f32, f32, f32, usize)],
+        steep: bool,
+    ) -> Option<([f32; 3], f32)> {
+        let m = pts.len();
+        let mut best: Option<([f32; 3], f32)> = None;
+        for t in 0..48usize {
+            let a = (t * 7919) % m;
+            let b = (a + m / 3 + t * 13) % m;
+            let c = (a + 2 * m / 3 + t * 29) % m;
+            let Some(pl) = plane_through(&pts[a], &pts[b], &pts[c]) else {
+                continue;
+            };
+            let mut buf: Vec<f32> = scored
+                .iter()
+                .map(|(u, v, z, _)| {
+                    let p = pl[0] + pl[1] * u + pl[2] * v;
+                    (z - if steep { p.clamp(0.0, 1.0) } else { p }).abs()
+                })
+                .collect();
+            let mid = buf.len() / 2;
+            buf.select_nth_unstable_by(mid, |p, q| p.total_cmp(q));
+            let med = buf[mid];
+            if best.is_none_or(|(_, bm)| med < bm) {
+                best = Some((pl, med));
+            }
+        }
+        best
+    }
+
+    #[test]
+    fn pruned_least_median_plane_is_the_plain_one() {
+        use rand::Rng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
+        for trial in 0..500 {
+            let n = rng.random_range(8..300);
+            let (a, b, c) = (
+                rng.random_range(-0.5f32..1.5),
+                rng.random_range(-2.0f32..2.0),
+                rng.random_range(-2.0f32..2.0),
+            );
+            let outliers = rng.random_range(0.0..0.7);
+            let noise = [0.0f32, 0.01, 0.2][trial % 3];
+            let all: Vec<(f32, f32, f32, usize)> = (0..n)
+                .map(|k| {
+                    let (u, v) = (rng.random_range(-0.5f32..0.5), rng.random_range(-0.5f32..0.5));
+                    let z = if rng.random_bool(outliers) {
+                        rng.random_range(-1.0f32..2.0)
+                    } else {
+                        a + b * u + c * v + noise * rng.random_range(-1.0f32..1.0)
+                    };
+                    // quantised depths make ties between candidates' medians
+                    let z = if trial % 4 == 0 { (z * 8.0).round() / 8.0 } else { z };
+                    (u, v, z, k)
+                })
+                .collect();
+            let pts: Vec<(f32, f32, f32, usize)> = all.iter().filter(|p| p.2 > 0.0 && p.2 < 1.0).copied().collect();
+            if pts.len() < 3 {
+                continue;
+            }
+            for steep in [false, true] {
+                let scored = if steep { &all } else { &pts };
+                let bits = |r: Option<([f32; 3], f32)>| r.map(|(p, m)| (p.map(f32::to_bits), m.to_bits()));
+                assert_eq!(
+                    bits(least_median_plane(&pts, scored, steep)),
+                    bits(least_median_plane_reference(&pts, scored, steep)),
+                    "trial {trial}, steep {steep}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn denoise_radius_is_what_the_noise_estimate_says() {
+        use rand::Rng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(33);
+        let mut radii = [0usize; 3];
+        for trial in 0..600 {
+            let layout = FeatureLayout {
+                feature_px: [32, 8, 4][trial % 3],
+                use_color: false,
+                color_weight: 1.0,
+                chromaticity: false,
+            };
+            let sigma = rng.random_range(0.0f32..0.8);
+            let (_, _, x) = block_cells(sigma, trial as u64);
+            let f = layout.feature_px;
+            // a sub-grid, quantised so that medians sit on the thresholds too, some cells masked
+            let x: Vec<f32> = (0..f * f)
+                .map(|k| {
+                    let v = x[(k / f) * 32 + k % f];
+                    if trial % 5 == 0 { (v * 16.0).round() / 16.0 } else { v }
+                })
+                .collect();
+            let mask: Vec<bool> = (0..f * f).map(|_| rng.random_bool(0.1)).collect();
+            let sigma = depth_noise_sigma(&layout, &x, &mask).unwrap_or(0.0);
+            let want = (sigma > DENOISE_MIN_SIGMA).then_some(if sigma > 0.5 { 2 } else { 1 });
+            let got = denoise_radius(&layout, &x, &mask);
+            assert_eq!(got, want, "trial {trial}: sigma {sigma}");
+            radii[got.unwrap_or(0) as usize] += 1;
+        }
+        assert!(radii.iter().all(|n| *n > 20), "{radii:?}");
+    }
+
+    #[test]
+    fn tabulated_axes_sample_what_the_per_sample_maths_did() {
+        use rand::Rng;
+        let (w, h) = (97u32, 71u32);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        let depth = DepthImage {
+            width: w,
+            height: h,
+            data_m: (0..w * h)
+                .map(|_| {
+                    if rng.random_bool(0.1) {
+                        0.0
+                    } else {
+                        rng.random_range(0.5f32..2.0)
+                    }
+                })
+                .collect(),
+        };
+        let color = ColorImage {
+            width: w,
+            height: h,
+            data: (0..w * h)
+                .map(|_| [rng.random::<u8>(), rng.random::<u8>(), rng.random::<u8>()])
+                .collect(),
+        };
+        for trial in 0..400 {
+            let layout = FeatureLayout {
+                feature_px: [32, 16, 8][trial % 3],
+                use_color: trial % 5 != 0,
+                color_weight: 0.7,
+                chromaticity: false,
+            };
+            let rotation_rad = match trial % 4 {
+                0 | 1 => 0.0,
+                2 => -0.0,
+                _ => rng.random_range(-3.2..3.2),
+            };
+            let p = CropParams {
+                centre_px: [rng.random_range(-20.0..117.0), rng.random_range(-20.0..91.0)],
+                side_px: rng.random_range(3.0..120.0),
+                rotation_rad,
+                z_centre_m: rng.random_range(0.5..2.0),
+                box_m: rng.random_range(0.05..0.4),
+                zero_is_far: trial % 7 == 0,
+            };
+            let img = (trial % 6 != 1).then_some(&color);
+            let (mut x0, mut m0) = (vec![0f32; layout.dim()], vec![false; layout.dim()]);
+            let (mut x1, mut m1) = (vec![0f32; layout.dim()], vec![false; layout.dim()]);
+            let s0 = sample_crop_reference(&layout, &depth, img, &p, &mut x0, &mut m0);
+            let s1 = sample_crop(&layout, &depth, img, &p, &mut x1, &mut m1);
+            assert_eq!(s0.to_bits(), s1.to_bits(), "trial {trial}");
+            assert_eq!(m0, m1, "trial {trial}");
+            let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<u32>>();
+            assert_eq!(bits(&x0), bits(&x1), "trial {trial}: {p:?}");
+        }
     }
 
     fn rms(a: &[f32], b: &[f32]) -> f32 {

@@ -363,4 +363,152 @@ mod tests {
             contrast(0.9)
         );
     }
+
+    /// `encode_particles` as it was: one crop per particle with the per-sample reference of
+    /// `sample_crop`, every step on its own copy.
+    fn encode_particles_reference(
+        codebook: &Codebook,
+        view: &ViewImage,
+        positions_in_view_m: &[Vector3<f64>],
+    ) -> (Vec<f32>, Vec<bool>, Vec<f32>) {
+        use crate::tracker::crop;
+        let layout = codebook.layout();
+        let (d, f) = (layout.dim(), layout.feature_px);
+        let k = view.intrinsics;
+        let (mut x, mut mask, mut valid, mut score) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for p in positions_in_view_m {
+            let mut cx = vec![0f32; d];
+            let mut cm = vec![true; d];
+            let uv = [k.fx() * p.x / p.z + k.cx(), k.fy() * p.y / p.z + k.cy()];
+            if p.z < 0.05 || !k.contains(uv) {
+                x.extend(cx);
+                mask.extend(cm);
+                valid.push(false);
+                score.push(0.0);
+                continue;
+            }
+            let params = CropParams {
+                centre_px: uv,
+                side_px: k.fx() * codebook.crop_side_m() / p.z,
+                rotation_rad: 0.0,
+                z_centre_m: p.z,
+                box_m: codebook.box_m(),
+                zero_is_far: false,
+            };
+            let share = crop::sample_crop_reference(&layout, view.depth, view.color, &params, &mut cx, &mut cm);
+            let raw_x = cx[..f * f].to_vec();
+            let raw_m = cm[..f * f].to_vec();
+            let mut has_object = true;
+            if codebook.config.suppress_plane {
+                let mut probe = cx[..f * f].to_vec();
+                if crop::suppress_support_plane_steep(&layout, &mut probe, &cm, false) {
+                    let near = (0..f * f).filter(|&c| !cm[c] && probe[c] < 1.0).count();
+                    has_object = near as f64 >= MIN_OBJECT_SHARE * (f * f) as f64;
+                }
+                crop::suppress_support_plane(&layout, &mut cx, &cm, view.color.is_some());
+            }
+            crop::inpaint_depth(&layout, &mut cx, &mut cm, view.color.is_some());
+            crop::to_chromaticity(&layout, &mut cx, &cm);
+            x.extend(cx);
+            mask.extend(cm);
+            valid.push(share >= MIN_VALID_SHARE && has_object);
+            score.push(crop::central_median_depth(&layout, &raw_x, &raw_m).unwrap_or(f32::NAN));
+        }
+        let (n, kd) = (positions_in_view_m.len(), codebook.code_dim());
+        let mut codes = vec![0f32; n * kd];
+        codebook.encoder.encode_observations(&x, &mask, n, &mut codes);
+        for (p, v) in valid.iter().enumerate() {
+            if !v {
+                codes[p * kd..(p + 1) * kd].fill(0.0);
+            }
+        }
+        (codes, valid, score)
+    }
+
+    #[test]
+    fn particle_codes_match_the_per_particle_reference_on_a_rendered_scene() {
+        use crate::geometry::{Pose, RotationGrid, look_at};
+        use crate::tracker::codebook::{CodebookConfig, CpuViews};
+        use nalgebra::{Translation3, UnitQuaternion};
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        let mesh = crate::mesh::builtin("box").expect("built-in box");
+        let config = CodebookConfig {
+            render_px: 64,
+            code_dim: 16,
+            color_code_dim: 4,
+            n_train: 300,
+            ..CodebookConfig::default()
+        };
+        let codebook =
+            Codebook::build(&CpuViews(&mesh), &mesh, RotationGrid::new(30).expect("grid"), &config).expect("codebook");
+        let mut table = crate::mesh::builtin_box([4.0, 4.0, 0.02], [[120, 100, 80], [120, 100, 80]]);
+        for v in &mut table.vertices_m {
+            v[2] -= 0.01;
+        }
+        let b = mesh.bounds();
+        let world_from_object = Pose::from_parts(
+            Translation3::new(0.0, 0.0, -b.min_m.z),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.7),
+        );
+        let k = Intrinsics::from_focal(320, 240, 260.0).expect("intrinsics");
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+        // a near view and a far one with 5 % depth noise and missing readings (the denoised path)
+        for (eye, noise) in [([-0.9, 0.1, 0.8], 0.0f32), ([0.8, -2.6, 1.6], 0.05)] {
+            let world_from_camera = look_at(eye, [0.0, 0.0, 0.1]);
+            let cfw = world_from_camera.inverse();
+            let mut img = crate::render::raster::render(
+                &k,
+                &[(&mesh, cfw * world_from_object), (&table, cfw)],
+                0.05,
+                [40, 40, 40],
+            );
+            let gauss = Normal::new(0.0f32, 1.0).expect("normal");
+            for (i, d) in img.depth.data_m.iter_mut().enumerate() {
+                if noise > 0.0 {
+                    *d = if i % 13 == 0 {
+                        0.0
+                    } else {
+                        *d * (1.0 + noise * gauss.sample(&mut rng))
+                    };
+                }
+            }
+            let view = ViewImage {
+                intrinsics: &k,
+                depth: &img.depth,
+                color: Some(&img.color),
+            };
+            let centre = (cfw * world_from_object).translation.vector;
+            let jitter = Normal::new(0.0, 0.03).expect("normal");
+            let mut positions: Vec<Vector3<f64>> = (0..110)
+                .map(|_| centre + Vector3::from_fn(|_, _| jitter.sample(&mut rng)))
+                .collect();
+            // off the image, behind the camera, at the image's edge
+            positions.push(Vector3::new(5.0, 0.0, 1.0));
+            positions.push(Vector3::new(0.0, 0.0, -1.0));
+            positions.push(Vector3::new(centre.x + 0.6 * centre.z, centre.y, centre.z));
+            for with_color in [true, false] {
+                let view = ViewImage {
+                    color: if with_color { view.color } else { None },
+                    ..view
+                };
+                let (codes, valid, score, _, _) = encode_particles(&codebook, &view, &positions);
+                let (codes0, valid0, score0) = encode_particles_reference(&codebook, &view, &positions);
+                assert_eq!(valid, valid0, "eye {eye:?}, colour {with_color}");
+                assert!(valid.iter().filter(|v| **v).count() > 50, "eye {eye:?}: {valid:?}");
+                for (p, (a, b)) in score.iter().zip(&score0).enumerate() {
+                    assert!(
+                        a.to_bits() == b.to_bits() || (!valid[p] && a.is_nan() == b.is_nan()),
+                        "{p}: {a} {b}"
+                    );
+                }
+                for (i, (a, b)) in codes.iter().zip(&codes0).enumerate() {
+                    assert!(
+                        (a - b).abs() <= 1e-6,
+                        "eye {eye:?}, colour {with_color}, code value {i}: {a} vs {b}"
+                    );
+                }
+            }
+        }
+    }
 }
