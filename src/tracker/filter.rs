@@ -216,7 +216,7 @@ impl Default for TrackerConfig {
             odometry_noise: OdometryNoise::default(),
             blur_radius_bins: 2,
             blur_sigma_bins: 1.0,
-            prior_floor_rel: 1e-2,
+            prior_floor_rel: 1e-3,
             min_component_weight: 0.02,
             init_uv_jitter_rel: 0.1,
             init_depth_sigma_m: 0.03,
