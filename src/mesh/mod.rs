@@ -418,6 +418,19 @@ mod tests {
     }
 
     #[test]
+    fn truncated_ascii_stl_is_refused() {
+        let facet = "facet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 0.1 0 0\nvertex 0 0.1 0\nendloop\nendfacet\n";
+        let whole = format!("solid t\n{facet}{facet}endsolid t\n");
+        assert!(Mesh::from_bytes(whole.as_bytes(), MeshFormat::Stl).is_ok());
+        // Cut after the first whole facet: three vertices, so only the missing end shows it.
+        let cut = format!("solid t\n{facet}");
+        assert!(matches!(
+            Mesh::from_bytes(cut.as_bytes(), MeshFormat::Stl),
+            Err(MeshError::Parse { format: "STL", .. })
+        ));
+    }
+
+    #[test]
     fn broken_meshes_are_rejected_with_reasons() {
         assert!(matches!(
             Mesh::from_bytes(b"ply\nformat ascii 1.0\nend_header\n", MeshFormat::Ply),

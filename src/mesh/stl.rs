@@ -46,6 +46,11 @@ pub(super) fn parse(bytes: &[u8]) -> Result<Parsed, MeshError> {
         if verts.len() % 3 != 0 {
             return Err(perr(F, "vertex count is not a multiple of 3"));
         }
+        // A cut-off upload otherwise passes whenever it ends after a whole facet.
+        let last = text.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("");
+        if !last.trim_start().starts_with("endsolid") {
+            return Err(perr(F, "no closing 'endsolid' (truncated?)"));
+        }
         for t in 0..verts.len() / 3 {
             let b = (t * 3) as u32;
             tris.push([b, b + 1, b + 2]);
