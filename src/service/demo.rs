@@ -265,15 +265,7 @@ fn run(state: Service, scene: DemoScene, stop: Arc<AtomicBool>) {
         tick += 1;
         if last_decision.elapsed() >= Duration::from_secs(1) {
             last_decision = Instant::now();
-            let targets: Vec<u64> = state
-                .tracking
-                .board()
-                .views
-                .values()
-                .filter(|v| v.object_id == DEMO_TARGET)
-                .map(|v| v.id)
-                .collect();
-            for id in targets {
+            for id in target_tracks(&state) {
                 let params = DecisionParams {
                     n_samples: 300,
                     ..DecisionParams::default()
@@ -459,15 +451,7 @@ pub fn run_headless(args: &HeadlessArgs) -> anyhow::Result<Vec<LoopOutcome>> {
                     continue;
                 }
                 next_decision_s += 1.0;
-                let targets: Vec<u64> = state
-                    .tracking
-                    .board()
-                    .views
-                    .values()
-                    .filter(|v| v.object_id == DEMO_TARGET)
-                    .map(|v| v.id)
-                    .collect();
-                for id in targets {
+                for id in target_tracks(&state) {
                     let params = DecisionParams {
                         n_samples: 300,
                         ..DecisionParams::default()
@@ -573,6 +557,18 @@ pub fn summary_line(outcomes: &[LoopOutcome]) -> String {
         "loops with a grasp for the {DEMO_TARGET}: {with_grasp} of {} ({before_stop} before the robot stopped); grasp answers failing on the truth: {failing} of {grasps}",
         outcomes.len()
     )
+}
+
+/// The ids of the demo target's tracks on the board.
+fn target_tracks(state: &ServiceState) -> Vec<u64> {
+    state
+        .tracking
+        .board()
+        .views
+        .values()
+        .filter(|v| v.object_id == DEMO_TARGET)
+        .map(|v| v.id)
+        .collect()
 }
 
 #[cfg(test)]
