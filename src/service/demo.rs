@@ -278,7 +278,7 @@ fn run(state: Service, scene: DemoScene, stop: Arc<AtomicBool>) {
     }
 }
 
-/// Options of `pregrasp demo-loops`: the demo's decision loop measured without a server.
+/// Options of `pregrasp demo-loops`: the demo's decision loop, run headless without a server.
 #[derive(Debug, Clone, clap::Args)]
 pub struct HeadlessArgs {
     /// Loops of the robot's drive (24 s drive, 4 s wait each).
