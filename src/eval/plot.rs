@@ -446,6 +446,7 @@ mod tests {
             shape_symmetric_error_deg: None,
             truth_place: None,
             estimate_xyzw: None,
+            error_rotvec_object_rad: None,
         };
         let trace = ObjectTrace {
             sequence: "s".into(),

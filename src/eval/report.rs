@@ -49,6 +49,10 @@ pub struct FrameErrors {
     /// The estimate's rotation (reference frame, x, y, z, w): pairs runs frame by frame.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub estimate_xyzw: Option<[f64; 4]>,
+    /// The error as a rotation vector in the object frame (`truth^-1 * estimate`, radians):
+    /// which turn the estimate is off by (a near-symmetry shows as a half turn about one axis).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error_rotvec_object_rad: Option<[f64; 3]>,
 }
 
 /// The truth's place in the tracked distribution at one frame (`eval::trust`): the
@@ -694,6 +698,7 @@ mod tests {
             shape_symmetric_error_deg: None,
             truth_place: None,
             estimate_xyzw: None,
+            error_rotvec_object_rad: None,
         }
     }
 

@@ -449,6 +449,7 @@ pub fn evaluate_sequence(
                             let q = e.rotation.quaternion();
                             [q.i, q.j, q.k, q.w]
                         }),
+                        error_rotvec_object_rad: Some((t.rotation.inverse() * e.rotation).scaled_axis().into()),
                     }
                 });
                 if let (Some(dc), Some(i), true) = (&cfg.decide, assoc[k], table_row(object)) {

@@ -54,6 +54,13 @@ pub struct ObservationConfig {
     pub depth_sigma_m: f32,
     /// Lowest log term of the depth check per view.
     pub depth_floor: f32,
+    /// Apparent size (px, the object's diameter at the particles' mean depth) from which a
+    /// view counts at full strength; below it the view's log-likelihood is scaled by
+    /// `(size / full_size_px)^2`, the share of the pixels a full-size crop would have: a far,
+    /// small object is upsampled into a crop that looks confident but holds few pixels.
+    /// 0: off.
+    #[serde(default = "default_full_size_px")]
+    pub full_size_px: f32,
 }
 
 impl Default for ObservationConfig {
@@ -65,12 +72,26 @@ impl Default for ObservationConfig {
             full_similarity: default_full_similarity(),
             depth_sigma_m: 0.015,
             depth_floor: -6.0,
+            full_size_px: default_full_size_px(),
         }
     }
 }
 
+/// How much of its log-likelihood a view counts with for an object `size_px` across (see
+/// [`ObservationConfig::full_size_px`]).
+pub fn size_strength(size_px: f32, config: &ObservationConfig) -> f32 {
+    if config.full_size_px <= 0.0 || !size_px.is_finite() {
+        return 1.0;
+    }
+    (size_px / config.full_size_px).clamp(0.0, 1.0).powi(2)
+}
+
 fn default_full_similarity() -> f32 {
     0.85
+}
+
+fn default_full_size_px() -> f32 {
+    90.0
 }
 
 /// How much of its log-likelihood a view whose best similarity is `best` contributes (see
@@ -341,6 +362,25 @@ pub fn add_loglik(dst: &mut [f32], ev: &ViewEvidence, map: Option<&[u32]>, n: us
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn small_far_objects_are_weaker_evidence() {
+        let off = ObservationConfig {
+            full_size_px: 0.0,
+            ..Default::default()
+        };
+        assert_eq!(size_strength(10.0, &off), 1.0, "0 turns it off");
+        let c = ObservationConfig {
+            full_size_px: 100.0,
+            ..off
+        };
+        assert_eq!(size_strength(100.0, &c), 1.0);
+        assert_eq!(size_strength(400.0, &c), 1.0);
+        // half the size holds a quarter of the pixels
+        assert!((size_strength(50.0, &c) - 0.25).abs() < 1e-6);
+        assert!(size_strength(20.0, &c) < size_strength(40.0, &c));
+        assert_eq!(size_strength(f32::NAN, &c), 1.0);
+    }
 
     #[test]
     fn weak_matches_are_weak_evidence() {

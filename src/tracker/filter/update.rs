@@ -23,6 +23,8 @@ struct Encoded {
     q: UnitQuaternion<f64>,
     /// The whole grid's map, when cached.
     dense_map: Option<Arc<Vec<u32>>>,
+    /// The object's diameter in pixels at the particles' mean depth.
+    size_px: f32,
 }
 
 impl Encoded {
@@ -45,6 +47,12 @@ impl Encoded {
             &self.positions_in_view_m,
             config,
         )
+        .map(|mut ev| {
+            let s = crate::tracker::observation::size_strength(self.size_px, config);
+            ev.k *= s;
+            ev.floor *= s;
+            ev
+        })
     }
 }
 
@@ -154,6 +162,7 @@ impl Tracker {
                 positions_in_view_m: positions,
                 q,
                 dense_map: None,
+                size_px: (codebook.box_m() * frame.intrinsics.fx() / mean_view.z.max(0.05)) as f32,
             });
         }
 
