@@ -321,6 +321,18 @@ impl RotationGrid {
 
     /// Relative SO(3) volume of the bins of one elevation row (sums to 1 over all bins):
     /// proportional to the solid angle of the elevation band, half-width bands at the poles.
+    /// Shannon entropy (nats) of the uniform distribution on SO(3) over this grid's bins: the
+    /// largest entropy a rotation histogram on it can have.
+    pub fn uniform_entropy(&self) -> f64 {
+        let per_elevation = (self.n_azimuth * self.n_inplane) as f64;
+        -self
+            .elevation_volume_weights()
+            .iter()
+            .filter(|w| **w > 0.0)
+            .map(|w| per_elevation * w * w.ln())
+            .sum::<f64>()
+    }
+
     pub fn elevation_volume_weights(&self) -> Vec<f64> {
         let s = self.step_rad();
         let mut w: Vec<f64> = (0..self.n_elevation)
@@ -475,6 +487,14 @@ mod tests {
         let sum: f64 = w.iter().sum::<f64>() * (g.n_azimuth() * g.n_inplane()) as f64;
         assert_relative_eq!(sum, 1.0, epsilon = 1e-12);
         assert!(w[18] > w[1] && w[1] > w[0]);
+    }
+
+    #[test]
+    fn the_uniform_entropy_is_just_below_ln_of_the_bins() {
+        let g = RotationGrid::full();
+        let h = g.uniform_entropy();
+        let ln_n = ((g.n_elevation() * g.n_azimuth() * g.n_inplane()) as f64).ln();
+        assert!(h < ln_n && h > ln_n - 0.5, "{h} vs ln N {ln_n}");
     }
 
     #[test]

@@ -72,6 +72,24 @@ pub struct TruthPlace {
     pub translation_truth_in_50: Option<f64>,
     pub translation_truth_in_90: Option<f64>,
     pub translation_volume_90_m3: Option<f64>,
+    /// The rotation histogram's entropy over the uniform distribution's on the same grid (1:
+    /// as spread as uniform); `None` in runs written before it was recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rotation_entropy_ratio: Option<f64>,
+}
+
+impl TruthPlace {
+    /// The truth is less likely than under a uniform rotation.
+    pub fn below_uniform(&self) -> bool {
+        self.rotation_log_density < 0.0
+    }
+
+    /// Confidently wrong (issue 19's definition): the truth below uniform while the entropy is
+    /// under half of uniform's. A near-uniform distribution that barely misses the truth is
+    /// honest, not confident; without a recorded entropy a frame below uniform counts.
+    pub fn confidently_wrong(&self) -> bool {
+        self.below_uniform() && self.rotation_entropy_ratio.is_none_or(|r| r < 0.5)
+    }
 }
 
 /// The rotation part of a [`TrustRow`].
@@ -104,9 +122,13 @@ pub struct TrustRow {
     pub frames: usize,
     pub rotation: RotationTrust,
     pub translation: Option<TranslationTrust>,
-    /// Share of the scored frames whose truth is less likely under the tracked rotation than
-    /// under a uniform one (log density below 0).
+    /// Share of the scored frames that are confidently wrong ([`TruthPlace::confidently_wrong`]:
+    /// the truth below uniform while the entropy is under half of uniform's).
     pub confidently_wrong: f64,
+    /// Share of the scored frames whose truth is less likely under the tracked rotation than
+    /// under a uniform one (log density below 0), however spread the distribution.
+    #[serde(default)]
+    pub below_uniform: f64,
 }
 
 fn median(mut v: Vec<f64>) -> Option<f64> {
@@ -156,7 +178,8 @@ impl TrustRow {
                 truth_in_90: translation.iter().map(|t| t.1).sum::<f64>() / tn,
                 median_volume_90_m3: median(translation.iter().map(|t| t.2).collect()).unwrap_or(f64::NAN),
             }),
-            confidently_wrong: places.iter().filter(|p| p.rotation_log_density < 0.0).count() as f64 / n,
+            confidently_wrong: places.iter().filter(|p| p.confidently_wrong()).count() as f64 / n,
+            below_uniform: places.iter().filter(|p| p.below_uniform()).count() as f64 / n,
         })
     }
 
@@ -185,6 +208,7 @@ impl TrustRow {
                 median_volume_90_m3: tm(&|r| r.median_volume_90_m3),
             }),
             confidently_wrong: m(&|r| r.confidently_wrong),
+            below_uniform: m(&|r| r.below_uniform),
         })
     }
 }
@@ -514,15 +538,15 @@ impl Results {
             );
             let _ = writeln!(
                 s,
-                "| object | frames | rot. in 50 | rot. in 90 | rot. vol. 90 (SO(3)) | transl. in 50 | transl. in 90 | transl. vol. 90 (cm^3) | confidently wrong | sym. (deg) | shape sym. (deg) |"
+                "| object | frames | rot. in 50 | rot. in 90 | rot. vol. 90 (SO(3)) | transl. in 50 | transl. in 90 | transl. vol. 90 (cm^3) | confidently wrong | below uniform | sym. (deg) | shape sym. (deg) |"
             );
-            let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|");
+            let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|");
             for r in self.objects.iter().chain(std::iter::once(&self.mean)) {
                 let Some(t) = &r.trust else { continue };
                 let tr = t.translation.as_ref();
                 let _ = writeln!(
                     s,
-                    "| {} | {} | {:.3} | {:.3} | {:.2e} | {} | {} | {} | {:.3} | {} | {} |",
+                    "| {} | {} | {:.3} | {:.3} | {:.2e} | {} | {} | {} | {:.3} | {:.3} | {} | {} |",
                     r.name,
                     t.frames,
                     t.rotation.truth_in_50,
@@ -532,6 +556,7 @@ impl Results {
                     fmt(tr.map(|x| x.truth_in_90), 3),
                     fmt(tr.map(|x| x.median_volume_90_m3 * 1e6), 2),
                     t.confidently_wrong,
+                    t.below_uniform,
                     fmt(r.symmetric_error_deg, 2),
                     fmt(r.shape_symmetric_error_deg, 2),
                 );
@@ -796,7 +821,30 @@ mod tests {
             translation_truth_in_50: translation.map(|_| 0.0),
             translation_truth_in_90: translation.map(|_| 1.0),
             translation_volume_90_m3: translation,
+            rotation_entropy_ratio: None,
         }
+    }
+
+    #[test]
+    fn a_spread_distribution_that_misses_the_truth_is_not_confidently_wrong() {
+        let spread = TruthPlace {
+            rotation_entropy_ratio: Some(0.9),
+            ..place(-0.1, 0.0, 1.0, 0.8, None)
+        };
+        let sharp = TruthPlace {
+            rotation_entropy_ratio: Some(0.3),
+            ..place(-0.1, 0.0, 0.0, 1e-3, None)
+        };
+        let right = TruthPlace {
+            rotation_entropy_ratio: Some(0.3),
+            ..place(5.0, 1.0, 1.0, 1e-3, None)
+        };
+        assert!(spread.below_uniform() && !spread.confidently_wrong());
+        assert!(sharp.below_uniform() && sharp.confidently_wrong());
+        assert!(!right.below_uniform() && !right.confidently_wrong());
+        let row = TrustRow::from_places(&[&spread, &sharp, &right]).expect("frames");
+        assert_relative_eq!(row.confidently_wrong, 1.0 / 3.0, epsilon = 1e-12);
+        assert_relative_eq!(row.below_uniform, 2.0 / 3.0, epsilon = 1e-12);
     }
 
     #[test]
@@ -825,6 +873,7 @@ mod tests {
         );
         assert_relative_eq!(row.rotation.median_log_density, -0.5, epsilon = 1e-12);
         assert_relative_eq!(row.confidently_wrong, 0.5, epsilon = 1e-12);
+        assert_relative_eq!(row.below_uniform, 0.5, epsilon = 1e-12);
         let t = row.translation.as_ref().expect("three frames with a mixture");
         assert_relative_eq!(t.median_volume_90_m3, 2e-6, epsilon = 1e-15);
         assert_relative_eq!(t.truth_in_90, 1.0, epsilon = 1e-12);

@@ -544,6 +544,10 @@ fn truth_place(
         translation_truth_in_50: translation.map(|t| t.truth_in_50),
         translation_truth_in_90: translation.map(|t| t.truth_in_90),
         translation_volume_90_m3: translation.map(|t| t.volume_90),
+        rotation_entropy_ratio: tracker
+            .uniform_rotation_entropy(track_id)
+            .filter(|u| *u > 0.0)
+            .map(|u| est.rotation_entropy / u),
     })
 }
 

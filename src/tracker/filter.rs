@@ -461,6 +461,13 @@ impl Tracker {
         )
     }
 
+    /// The entropy (nats) of a uniform rotation histogram on the grid track `track_id` is
+    /// tracked on: what `Estimate::rotation_entropy` is compared with.
+    pub fn uniform_rotation_entropy(&self, track_id: u64) -> Option<f64> {
+        let i = self.index_of(track_id)?;
+        Some(self.models[self.states[i].model].tables.grid.uniform_entropy())
+    }
+
     pub fn particles(&self, track_id: u64) -> Option<Vec<ParticleView>> {
         let i = self.index_of(track_id)?;
         let s = &self.states[i];
