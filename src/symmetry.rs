@@ -177,6 +177,26 @@ pub fn surface_mismatch(mesh: &Mesh, rotation: &UnitQuaternion<f64>) -> Option<S
     Some(ColoredSurface::new(mesh, SURFACE_SAMPLES)?.mismatch(rotation))
 }
 
+/// The turns by 90 and 180 degrees about the object's axes (and the inverse of each 90-degree
+/// one) under which the mesh's surface moves by less than `max_distance_m` on average: the
+/// poses a view may confuse with the true one. Empty for a mesh parry3d rejects.
+pub fn near_symmetric_turns(mesh: &Mesh, max_distance_m: f64) -> Vec<UnitQuaternion<f64>> {
+    let Some(surface) = ColoredSurface::new(mesh, SURFACE_SAMPLES) else {
+        return Vec::new();
+    };
+    let mut turns = Vec::new();
+    for k in 0..6 {
+        let q = candidate(k);
+        if surface.mismatch(&q).mean_distance_m < max_distance_m {
+            turns.push(q);
+            if k % 2 == 0 {
+                turns.push(q.inverse());
+            }
+        }
+    }
+    turns
+}
+
 impl Symmetries {
     /// No symmetry: the identity only.
     pub fn none() -> Self {

@@ -107,7 +107,21 @@ pub struct TrackerConfig {
     /// Competing rotation modes checked against the depth images.
     #[serde(default)]
     pub verification: VerificationConfig,
+    /// Each step, this share of every histogram's mass above its floor moves to the object's
+    /// near-symmetric turns (`turn_max_distance_rel`): a view cannot be trusted to tell a pose
+    /// from a turn that moves the surface by a few millimetres, so the turn keeps some mass
+    /// until the evidence against it outweighs the move. 0: off.
+    #[serde(default)]
+    pub turn_share: f64,
+    /// A turn by 90 or 180 degrees about an object axis is near-symmetric when it moves the
+    /// mesh's surface by less than this share of the object's diameter on average.
+    #[serde(default = "default_turn_max_distance_rel")]
+    pub turn_max_distance_rel: f64,
     pub seed: u64,
+}
+
+fn default_turn_max_distance_rel() -> f64 {
+    0.075
 }
 
 /// Recovery when the cameras disagree with a track (augmented Monte Carlo localisation's
@@ -227,6 +241,8 @@ impl Default for TrackerConfig {
             spread: SpreadConfig::default(),
             recovery: RecoveryConfig::default(),
             verification: VerificationConfig::default(),
+            turn_share: 0.0,
+            turn_max_distance_rel: default_turn_max_distance_rel(),
             seed: 1,
         }
     }
@@ -250,6 +266,9 @@ struct Model {
     codebook: Arc<Codebook>,
     tables: Arc<GridTables>,
     lattice: Arc<Lattice>,
+    /// The near-symmetric turns (object frame) that keep a share of the mass
+    /// ([`TrackerConfig::turn_share`]); empty when that is off.
+    turns: Vec<nalgebra::Matrix3<f64>>,
 }
 
 /// State of one track.
@@ -372,7 +391,9 @@ impl Tracker {
             } else {
                 Vec::new()
             };
+            let turns = self.turns_of(&mesh, &codebook);
             let m = &mut self.models[mi];
+            m.turns = turns;
             m.mesh = mesh;
             m.codebook = codebook;
             m.tables = tables;
@@ -380,13 +401,27 @@ impl Tracker {
             self.carry_tracks_to_new_grid(carried);
             return;
         }
+        let turns = self.turns_of(&mesh, &codebook);
         self.models.push(Model {
             name: name.to_string(),
             mesh,
             codebook,
             tables,
             lattice,
+            turns,
         });
+    }
+
+    /// The mesh's near-symmetric turns as rotation matrices (none when turn mixing is off).
+    fn turns_of(&self, mesh: &Mesh, codebook: &Codebook) -> Vec<nalgebra::Matrix3<f64>> {
+        if self.config.turn_share <= 0.0 {
+            return Vec::new();
+        }
+        let max_m = self.config.turn_max_distance_rel * codebook.box_m();
+        crate::symmetry::near_symmetric_turns(mesh, max_m)
+            .iter()
+            .map(|q| q.to_rotation_matrix().into_inner())
+            .collect()
     }
 
     pub fn tracks(&self) -> &[Track] {
@@ -564,6 +599,8 @@ impl Tracker {
             if s.n() > 0 {
                 let tables = &self.models[s.model].tables;
                 crate::tracker::sparse::blur(&mut s.rot, tables, &kernel, &mut self.blur_work);
+                let turns = &self.models[s.model].turns;
+                crate::tracker::sparse::mix_turns(&mut s.rot, tables, turns, self.config.turn_share as f32);
                 // the halo's bins that stay near the floor go back to it: only the rest is
                 // matched at this step
                 if !matching.dense {

@@ -14,7 +14,7 @@
 use crate::geometry::RotationGrid;
 use crate::tracker::bins::{GridTables, fast_exp, flat_of_matrix, gemm_nt, with_wide_simd};
 use crate::tracker::observation::ViewEvidence;
-use nalgebra::UnitQuaternion;
+use nalgebra::{Matrix3, UnitQuaternion};
 use rayon::prelude::*;
 
 /// Lattice factor of the coarse pass: every third bin in each angle.
@@ -583,6 +583,54 @@ enum Axis {
     Elevation,
 }
 
+/// Moves `share` of each column's mass above its floor at every active bin onto the bins of
+/// that bin's `turns` (object frame: bin `b`'s rotation times the turn), in equal parts; the
+/// partner bins join the active set. Mass is kept, so nothing is renormalised.
+pub fn mix_turns(state: &mut RotationState, tables: &GridTables, turns: &[Matrix3<f64>], share: f32) {
+    let nc = state.n_cols();
+    if nc == 0 || state.active.is_empty() || turns.is_empty() || share <= 0.0 {
+        return;
+    }
+    let grid = tables.grid;
+    let partners: Vec<u32> = state
+        .active
+        .par_iter()
+        .with_min_len(256)
+        .flat_map_iter(|b| {
+            let m = tables.matrix(*b as usize);
+            turns.iter().map(move |t| flat_of_matrix(&grid, &(m * t)) as u32)
+        })
+        .collect();
+    let mut all: Vec<u32> = state.active.iter().chain(&partners).copied().collect();
+    all.sort_unstable();
+    all.dedup();
+    let mut vals = vec![0f32; all.len() * nc];
+    for (row, b) in vals.chunks_mut(nc).zip(&all) {
+        let vol = tables.volume(*b as usize) as f32;
+        for (v, f) in row.iter_mut().zip(&state.floors) {
+            *v = f * vol;
+        }
+    }
+    let at = |b: u32| all.binary_search(&b).expect("in the union");
+    let each = share / turns.len() as f32;
+    let nt = turns.len();
+    for (a, b) in state.active.iter().enumerate() {
+        let k = at(*b);
+        let vol = tables.volume(*b as usize) as f32;
+        let old = &state.values[a * nc..(a + 1) * nc];
+        let dests: Vec<usize> = partners[a * nt..(a + 1) * nt].iter().map(|p| at(*p)).collect();
+        for c in 0..nc {
+            let excess = (old[c] - state.floors[c] * vol).max(0.0);
+            vals[k * nc + c] += old[c] - state.floors[c] * vol - share * excess;
+            for d in &dests {
+                vals[d * nc + c] += each * excess;
+            }
+        }
+    }
+    state.active = all;
+    state.values = vals;
+}
+
 /// The wrap-around Gaussian blur of every column (azimuth and in-plane wrap; elevation is
 /// truncated at the poles, each source row keeping its mass), as the dense blur, applied to
 /// each column's excess over its floor: the floor is (nearly) unchanged by a blur, so only
@@ -699,6 +747,43 @@ mod tests {
     use super::*;
     use crate::tracker::bins::{blur_reference, gaussian_kernel};
     use rand::{Rng, SeedableRng};
+
+    #[test]
+    fn mixing_moves_a_share_of_the_excess_to_the_turned_bins() {
+        let grid = RotationGrid::new(15).unwrap();
+        let tables = GridTables::new(grid);
+        let b = (10 * grid.n_azimuth() + 5) * grid.n_inplane() + 7;
+        let floor = 0.01f32;
+        let vol = tables.volume(b) as f32;
+        let mut state = RotationState {
+            active: vec![b as u32],
+            values: vec![floor * vol + 1.0],
+            floors: vec![floor],
+            column_of: vec![0, 0],
+        };
+        let mass = |s: &RotationState| -> f64 {
+            let active: f64 = s.values.iter().map(|v| *v as f64).sum();
+            let inactive: f64 = (0..grid.len())
+                .filter(|i| s.active.binary_search(&(*i as u32)).is_err())
+                .map(|i| (s.floors[0] * tables.volume(i) as f32) as f64)
+                .sum();
+            active + inactive
+        };
+        let before = mass(&state);
+        let turn = UnitQuaternion::from_axis_angle(&nalgebra::Vector3::z_axis(), std::f64::consts::PI);
+        let t = turn.to_rotation_matrix().into_inner();
+        mix_turns(&mut state, &tables, &[t], 0.2);
+        // the turned pose's bin: the bin's rotation (its frame from the object's) times the turn
+        let partner = flat_of_matrix(&grid, &(tables.matrix(b) * t)) as u32;
+        assert_ne!(partner, b as u32);
+        let at = |bin: u32| state.active.binary_search(&bin).expect("active");
+        let excess = |bin: u32| state.values[at(bin)] - floor * tables.volume(bin as usize) as f32;
+        assert!((excess(b as u32) - 0.8).abs() < 1e-5, "{}", excess(b as u32));
+        assert!((excess(partner) - 0.2).abs() < 1e-5, "{}", excess(partner));
+        assert!((mass(&state) - before).abs() < 1e-3 * before, "mass is kept");
+        // a 180-degree turn of the turned pose is the pose again
+        assert_eq!(flat_of_matrix(&grid, &(tables.matrix(partner as usize) * t)), b);
+    }
 
     #[test]
     fn sparse_blur_matches_the_dense_blur_of_the_excess() {
