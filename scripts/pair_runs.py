@@ -7,7 +7,9 @@ Usage: scripts/pair_runs.py A/frames.json B/frames.json [--mode-deg 15] [--boot 
 
 A frame's top modes "differ" when the two estimates are more than --mode-deg apart and not
 both within --mode-deg of the truth modulo the object's symmetries (so a can's spin about its
-axis is no difference); the test is conservative for symmetric objects.
+axis is no difference); the test is conservative for symmetric objects. It is also reported
+over the frames where A is confident (entropy under half of a uniform histogram's,
+--uniform-entropy): where A is nearly flat its top mode is arbitrary.
 """
 import argparse
 import json
@@ -38,12 +40,15 @@ def main():
     ap.add_argument("--mode-deg", type=float, default=15.0)
     ap.add_argument("--boot", type=int, default=10000)
     ap.add_argument("--seed", type=int, default=1)
+    # entropy (nats) of a uniform histogram on the grid (RotationGrid::uniform_entropy; 5 deg)
+    ap.add_argument("--uniform-entropy", type=float, default=11.9938)
     args = ap.parse_args()
     a, b = frames(args.a), frames(args.b)
     keys = sorted(set(a) & set(b))
     if not keys:
         raise SystemExit("no frame in common")
     differ = 0
+    confident, differ_confident = 0, 0
     differ_by_object = {}
     per_seq = {}
     for k in keys:
@@ -56,6 +61,10 @@ def main():
             apart = abs(ea["symmetric_error_deg"] - eb["symmetric_error_deg"]) > args.mode_deg
         d = apart and not both_right
         differ += d
+        # A (the reference) confident: its entropy under half of uniform's
+        if ea.get("rotation_entropy") is not None and ea["rotation_entropy"] < 0.5 * args.uniform_entropy:
+            confident += 1
+            differ_confident += d
         o = differ_by_object.setdefault(k[1], [0, 0])
         o[0] += d
         o[1] += 1
@@ -73,6 +82,8 @@ def main():
         "frames_paired": len(keys),
         "sequences": len(seq_means),
         "top_mode_differs_share": differ / len(keys),
+        "a_confident_share": confident / len(keys),
+        "top_mode_differs_where_a_confident_share": differ_confident / max(confident, 1),
         "top_mode_differs_by_object": {o: v[0] / v[1] for o, v in sorted(differ_by_object.items())},
         "loglik_diff_b_minus_a_mean": mean,
         "loglik_diff_95ci": [lo, hi],
