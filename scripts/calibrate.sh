@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # Refits the shipped calibration map of p_success and its grasp rule for the present tracker:
-# generates the tuning set (seed 1800) and the held-out report set (seed 2000), runs
-# `pregrasp eval --decide` on both with the service's settings (coarse codebook, 10-degree
-# grid, every frame, each sequence's target), fits the map and chooses the rule on the tuning
-# set, writes src/grasp/calibration_map.json and reports the map on the held-out set.
+# generates the tuning set (seed 1800, 48 sequences: the rule's failures need that many) and
+# the held-out report set (seed 2000), runs `pregrasp eval --decide` on both with the
+# service's settings (coarse codebook, 10-degree grid, every frame, each sequence's target),
+# fits the map and chooses the rule on the tuning set, writes src/grasp/calibration_map.json
+# and reports the map on the held-out set.
 #
-#   scripts/calibrate.sh [WORK_DIR]     (default /tmp/pregrasp-calibrate; about 1.5 h on 2 cores)
+#   scripts/calibrate.sh [WORK_DIR]     (default /tmp/pregrasp-calibrate; about 30 min on 2 cores)
 #
 # Then rebuild: the map is compiled into the binary, and the test
 # `eval::calibration::tests::the_shipped_map_is_fitted_for_the_running_settings` passes again.
@@ -13,7 +14,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
 WORK="${1:-/tmp/pregrasp-calibrate}"
-TUNING_SEQUENCES="${TUNING_SEQUENCES:-16}"
+TUNING_SEQUENCES="${TUNING_SEQUENCES:-48}"
 REPORT_SEQUENCES="${REPORT_SEQUENCES:-64}"
 export WGPU_BACKEND="${WGPU_BACKEND:-vulkan}"
 if [[ -z "${XDG_RUNTIME_DIR:-}" ]]; then XDG_RUNTIME_DIR=$(mktemp -d); export XDG_RUNTIME_DIR; fi

@@ -266,9 +266,6 @@ mod tests {
     }
 
     #[test]
-    #[ignore = "stale since the sparse step added its settings to the tracker's: the map is \
-                refitted (scripts/calibrate.sh) once the trust work freezes the tracker; until \
-                then the service answers with the raw rate and the old rule"]
     fn the_shipped_map_is_fitted_for_the_running_settings() {
         // Fails when a tracker, codebook or gripper default changed since the map was fitted:
         // refit it with `pregrasp calibrate` (README, "The grasp rule").
