@@ -15,7 +15,9 @@
 //! The relative `c / c_max` alone ranks whatever a view sees with the same confidence, a crop
 //! of noise included (a far camera seeing a thin object through depth noise larger than the
 //! object), and multiplies that in at full strength. Measurements: `docs/decisions.md`
-//! ("Tracker: decisions moved from the code").
+//! ("Tracker: decisions moved from the code"). The filter also scales it by the object's
+//! apparent size ([`size_strength`]; "Issue 19, second round"); `observe_view`, a diagnostic
+//! of one view, does not.
 
 pub mod fuse;
 
