@@ -430,6 +430,17 @@ function verdictOf(d) {
   return typeof v === "string" ? v.toLowerCase() : "";
 }
 
+/** What the answer's probability is: calibrated by the shipped map, or the raw sample rate
+ * because the map was fitted for other settings (stale) or there is none. */
+function calibrationLine(d) {
+  const c = d.calibration;
+  if (!c || !c.state) return "";
+  const raw = `raw ${fmt(d.p_success_raw, 2)}`;
+  if (c.state === "calibrated") return `calibrated · ${raw}`;
+  if (c.state === "stale") return `map fitted for other settings: raw rate and rule · ${raw}`;
+  return `no calibration map: raw rate · ${raw}`;
+}
+
 function mainReason(d) {
   const reasons = Array.isArray(d?.reasons) ? d.reasons : [];
   if (!reasons.length) return "";
@@ -492,6 +503,14 @@ function renderTrackList(tracks) {
       const ci = Array.isArray(d.ci95) ? ` [${fmt(d.ci95[0], 2)}, ${fmt(d.ci95[1], 2)}]` : "";
       p.textContent = `p_success ${fmt(d.p_success, 2)}${ci} (95 %) · threshold ${fmt(d.threshold, 2)}`;
       li.append(p);
+      const cal = calibrationLine(d);
+      if (cal) {
+        const c = document.createElement("div");
+        c.className = `metrics calibration calibration-${d.calibration.state}`;
+        c.textContent = cal;
+        if (d.calibration.message) c.title = d.calibration.message;
+        li.append(c);
+      }
       const reason = mainReason(d);
       if (reason) {
         const r = document.createElement("div");

@@ -109,6 +109,13 @@ async fn check_live_dashboard(page: &mut Page, base_url: &str) {
     .await
     .expect("verdict listed");
     page.wait_for(
+        "[...document.querySelectorAll('.track .calibration')].some(c => c.textContent.includes('raw '))",
+        WAIT,
+        "the track list to say what the probability is (calibrated or raw) beside the raw rate",
+    )
+    .await
+    .expect("calibration state listed");
+    page.wait_for(
         "Number(document.body.dataset.particlesDrawn) > 0",
         WAIT,
         "particles drawn in the 3D view",

@@ -160,6 +160,8 @@ fn track_view(index: usize, tick: u64) -> Value {
         "decision": if p_success >= 0.8 { "grasp" } else { "observe" },
         "p_success": p_success,
         "ci95": [(p_success - 0.05).max(0.0), (p_success + 0.05).min(1.0)],
+        "p_success_raw": 0.9 * p_success,
+        "calibration": { "state": "calibrated", "map_settings_hash": "mock", "running_settings_hash": "mock" },
         "n_samples": 200, "effective_sample_size": 180.0, "threshold": 0.8,
         "grasp": { "object_from_gripper": na_pose(&object_from_gripper), "approach_in_object": [0.0, -1.0, 0.0],
                    "closing_in_object": [1.0, 0.0, 0.0], "depth_m": 0.02, "width_m": 0.07, "label": "approach -a1, close a0" },
