@@ -174,35 +174,51 @@ pub fn sample_crop(
                         // not the raw pixel (far cameras' per-pixel noise would flip it)
                         let dk = under[qi] * f + under[qj];
                         let d = (!mask[dk]).then(|| out[dk]);
-                        let Some(d) = d else { continue };
-                        let rgb = match (axes.src(qi, qj), color) {
-                            (Some(k), Some(img)) if d < 1.0 => {
-                                let c = img.data[k];
-                                [c[0] as f32 / 255.0, c[1] as f32 / 255.0, c[2] as f32 / 255.0]
+                        if let Some(rgb) = sample_colour(d, axes.src(qi, qj), color) {
+                            for ch in 0..3 {
+                                sum[ch] += rgb[ch];
                             }
-                            (_, Some(_)) => [BACKGROUND_GREY; 3],
-                            (_, None) => continue,
-                        };
-                        for ch in 0..3 {
-                            sum[ch] += rgb[ch];
+                            n += 1;
                         }
-                        n += 1;
                     }
                 }
-                for (ch, sc) in sum.iter().enumerate() {
-                    let k = base + (i * fc + j) * 3 + ch;
-                    if n > 0 {
-                        out[k] = sc / n as f32 * layout.color_weight;
-                        mask[k] = false;
-                    } else {
-                        out[k] = 0.0;
-                        mask[k] = true;
-                    }
-                }
+                write_colour_cell(out, mask, base + (i * fc + j) * 3, sum, n, layout.color_weight);
             }
         }
     }
     valid as f64 / (f * f) as f64
+}
+
+/// One colour sample: the pixel's colour where the (normalised) depth cell under it `d` is the
+/// object (below 1), the background grey where it is not or the pixel is outside the image;
+/// `None` where the depth cell has no reading or there is no colour image.
+#[inline(always)]
+fn sample_colour(d: Option<f32>, pixel: Option<usize>, color: Option<&ColorImage>) -> Option<[f32; 3]> {
+    let d = d?;
+    let img = color?;
+    Some(match pixel {
+        Some(k) if d < 1.0 => {
+            let c = img.data[k];
+            [c[0] as f32 / 255.0, c[1] as f32 / 255.0, c[2] as f32 / 255.0]
+        }
+        _ => [BACKGROUND_GREY; 3],
+    })
+}
+
+/// Writes a colour cell (three channels from `k0`): the mean of its `n` samples' `sum` times
+/// `weight`, or a masked zero without samples.
+#[inline(always)]
+fn write_colour_cell(out: &mut [f32], mask: &mut [bool], k0: usize, sum: [f32; 3], n: usize, weight: f32) {
+    for (ch, sc) in sum.iter().enumerate() {
+        let k = k0 + ch;
+        if n > 0 {
+            out[k] = sc / n as f32 * weight;
+            mask[k] = false;
+        } else {
+            out[k] = 0.0;
+            mask[k] = true;
+        }
+    }
 }
 
 /// A pixel column (or row) per sample, `None` outside the image.
@@ -875,31 +891,15 @@ pub(crate) fn sample_crop_reference(
                             (j * f / fc + sj * f / (fc * SUBSAMPLES)).min(f - 1),
                         );
                         let d = (!mask[di * f + dj]).then(|| out[di * f + dj]);
-                        let Some(d) = d else { continue };
-                        let rgb = match (k, color) {
-                            (Some(k), Some(img)) if d < 1.0 => {
-                                let c = img.data[k];
-                                [c[0] as f32 / 255.0, c[1] as f32 / 255.0, c[2] as f32 / 255.0]
+                        if let Some(rgb) = sample_colour(d, k, color) {
+                            for ch in 0..3 {
+                                sum[ch] += rgb[ch];
                             }
-                            (_, Some(_)) => [BACKGROUND_GREY; 3],
-                            (_, None) => continue,
-                        };
-                        for ch in 0..3 {
-                            sum[ch] += rgb[ch];
+                            n += 1;
                         }
-                        n += 1;
                     }
                 }
-                for (ch, sc) in sum.iter().enumerate() {
-                    let k = base + (i * fc + j) * 3 + ch;
-                    if n > 0 {
-                        out[k] = sc / n as f32 * layout.color_weight;
-                        mask[k] = false;
-                    } else {
-                        out[k] = 0.0;
-                        mask[k] = true;
-                    }
-                }
+                write_colour_cell(out, mask, base + (i * fc + j) * 3, sum, n, layout.color_weight);
             }
         }
     }
