@@ -143,15 +143,7 @@ pub fn sample_crop(
                     }
                 }
             }
-            let k = i * f + j;
-            if n > 0 {
-                out[k] = sum / n as f32;
-                mask[k] = false;
-                valid += 1;
-            } else {
-                out[k] = 0.0;
-                mask[k] = true;
-            }
+            valid += usize::from(write_cell(out, mask, i * f + j, sum, n, 1.0));
         }
     }
     denoise_depth(layout, &mut out[..f * f], &mask[..f * f]);
@@ -210,15 +202,17 @@ fn sample_colour(d: Option<f32>, pixel: Option<usize>, color: Option<&ColorImage
 #[inline(always)]
 fn write_colour_cell(out: &mut [f32], mask: &mut [bool], k0: usize, sum: [f32; 3], n: usize, weight: f32) {
     for (ch, sc) in sum.iter().enumerate() {
-        let k = k0 + ch;
-        if n > 0 {
-            out[k] = sc / n as f32 * weight;
-            mask[k] = false;
-        } else {
-            out[k] = 0.0;
-            mask[k] = true;
-        }
+        write_cell(out, mask, k0 + ch, *sc, n, weight);
     }
+}
+
+/// Writes cell `k`: the mean `sum / n` of its samples times `scale`, or a masked zero without
+/// samples; whether it holds a value.
+#[inline(always)]
+fn write_cell(out: &mut [f32], mask: &mut [bool], k: usize, sum: f32, n: usize, scale: f32) -> bool {
+    mask[k] = n == 0;
+    out[k] = if n > 0 { sum / n as f32 * scale } else { 0.0 };
+    n > 0
 }
 
 /// A pixel column (or row) per sample, `None` outside the image.
@@ -859,15 +853,7 @@ pub(crate) fn sample_crop_reference(
                     }
                 }
             }
-            let k = i * f + j;
-            if n > 0 {
-                out[k] = sum / n as f32;
-                mask[k] = false;
-                valid += 1;
-            } else {
-                out[k] = 0.0;
-                mask[k] = true;
-            }
+            valid += usize::from(write_cell(out, mask, i * f + j, sum, n, 1.0));
         }
     }
     denoise_depth(layout, &mut out[..f * f], &mask[..f * f]);
