@@ -2,7 +2,8 @@
 # Refits the shipped calibration map of p_success and its grasp rule for the present tracker:
 # generates the tuning set (seed 1800, 48 sequences: the rule's failures need that many) and
 # the held-out report set (seed 2000), runs `pregrasp eval --decide` on both with the
-# service's settings (coarse codebook, 10-degree grid, every frame, each sequence's target),
+# service's settings once its finer codebooks are built (full codebook, 5-degree grid, every
+# frame, each sequence's target),
 # fits the map and chooses the rule on the tuning set, writes src/grasp/calibration_map.json
 # and reports the map on the held-out set.
 #
@@ -26,7 +27,7 @@ mkdir -p "$WORK"
 cd "$WORK"
 [[ -d T ]] || "$P" generate --out T --models "$MODELS" --sequences "$TUNING_SEQUENCES" --seed 1800 --targets "$OBJECTS"
 [[ -d R ]] || "$P" generate --out R --models "$MODELS" --sequences "$REPORT_SEQUENCES" --seed 2000 --targets "$OBJECTS"
-EVAL=(eval --cache cache --models "$MODELS" --grid-step-deg 10 --coarse-codebook --only-target --decide --trust-samples 0 --mode multi)
+EVAL=(eval --cache cache --models "$MODELS" --grid-step-deg 5 --only-target --decide --trust-samples 0 --mode multi)
 "$P" "${EVAL[@]}" --data T --out T-eval --repeat-draw
 "$P" "${EVAL[@]}" --data R --out R-eval
 "$P" calibrate --fit T-eval/decisions.json --report R-eval/decisions.json \

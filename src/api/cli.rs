@@ -77,7 +77,7 @@ pub struct ServeArgs {
     /// Grid step (degrees) of the finer codebook built in the background after the coarse
     /// 10-degree one (5: the paper's grid; tracks carry over to it); 10 keeps the coarse one
     /// only. Must divide 180.
-    #[arg(long, default_value_t = 5, value_parser = parse_grid_step)]
+    #[arg(long, default_value_t = crate::service::codebooks::CodebookPlan::SERVE_FINE_STEP_DEG, value_parser = parse_grid_step)]
     pub codebook_step_deg: u32,
     /// The calibration map of `p_success` (JSON written by `pregrasp calibrate --fit`) instead
     /// of the one built into the binary; applied only where it was fitted for the running
@@ -174,9 +174,7 @@ pub fn config_from(args: &ServeArgs) -> anyhow::Result<ApiConfig> {
         .and_then(|ms| ms.checked_mul(1_000_000))
         .filter(|ns| *ns <= crate::service::ingest::MAX_STAMP_NS)
         .ok_or_else(|| anyhow::anyhow!("--window-ms {} is too large", args.window_ms))?;
-    if args.codebook_step_deg < config.service.codebooks.coarse_step_deg {
-        config.service.codebooks.fine = Some((args.codebook_step_deg, crate::tracker::CodebookConfig::default()));
-    }
+    config.service.codebooks = crate::service::codebooks::CodebookPlan::with_fine_step(args.codebook_step_deg);
     if let Some(path) = &args.calibration_map {
         let text = std::fs::read_to_string(path)
             .map_err(|e| anyhow::anyhow!("reading --calibration-map {}: {e}", path.display()))?;

@@ -102,19 +102,22 @@ pub fn calibration_settings_hash(
     crate::grasp::calibrated::settings_hash(&calibration_settings(tracker, codebook, grid_step_deg, gripper))
 }
 
-/// The settings hash of `serve` as it starts by default (the default tracker, the coarse
-/// codebook on the 10-degree grid, the built-in gripper): the shipped map must be fitted for it.
+/// The settings hash of `serve` as it tracks by default once its finer codebooks are built (the
+/// default tracker, the full codebook on the 5-degree grid, the built-in gripper): the shipped
+/// map must be fitted for it. Until an object's finer codebook is ready its answers carry the
+/// raw rate and say `stale`.
 pub fn service_settings_hash() -> String {
     calibration_settings_hash(
         &TrackerConfig::default(),
-        &CodebookConfig::coarse(),
+        &CodebookConfig::default(),
         SERVICE_GRID_STEP_DEG,
         &Gripper::default_parallel_jaw(),
     )
 }
 
-/// The grid `serve` tracks on by default (its first codebook's, `--codebook-step-deg 10`).
-pub const SERVICE_GRID_STEP_DEG: u32 = 10;
+/// The grid `serve` tracks on by default once an object's finer codebook is built
+/// (`--codebook-step-deg`'s default).
+pub const SERVICE_GRID_STEP_DEG: u32 = 5;
 
 /// `decisions.json` of an `eval --decide` run: every decision with its raw answer, the
 /// distribution's measures and the outcome on the truth, and the settings they came from.

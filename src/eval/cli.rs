@@ -63,9 +63,8 @@ pub struct Args {
     /// An earlier run's output folder whose traces the plots show dashed (e.g. single-view).
     #[arg(long)]
     pub compare: Option<PathBuf>,
-    /// The small codebook `serve` tracks with (`CodebookConfig::coarse()`, its default with
-    /// the 10-degree grid) instead of the full one: a calibration map for the service is
-    /// fitted on runs with it.
+    /// The small codebook `serve` starts tracking with (`CodebookConfig::coarse()`, its default
+    /// with the 10-degree grid) instead of the full one.
     #[arg(long)]
     pub coarse_codebook: bool,
     /// Codebooks from the meshes' depth alone (no colour): for meshes whose colours do not

@@ -52,6 +52,29 @@ pub struct CodebookPlan {
     pub fine: Option<(u32, CodebookConfig)>,
 }
 
+impl CodebookPlan {
+    /// The grid step of `serve`'s finer codebook by default (the paper's grid).
+    pub const SERVE_FINE_STEP_DEG: u32 = crate::eval::calibration::SERVICE_GRID_STEP_DEG;
+
+    /// The coarse codebook first, then a finer one on the `fine_step_deg` grid when that is
+    /// finer than the coarse one (as `serve --codebook-step-deg` and `demo-loops` build them).
+    pub fn with_fine_step(fine_step_deg: u32) -> Self {
+        let mut plan = Self::default();
+        if fine_step_deg < plan.coarse_step_deg {
+            plan.fine = Some((fine_step_deg, CodebookConfig::default()));
+        }
+        plan
+    }
+
+    /// The codebook an object tracks with once every stage is built, and its grid step.
+    pub fn last_stage(&self) -> (&CodebookConfig, u32) {
+        match &self.fine {
+            Some((step, config)) => (config, *step),
+            None => (&self.coarse, self.coarse_step_deg),
+        }
+    }
+}
+
 impl Default for CodebookPlan {
     fn default() -> Self {
         Self {

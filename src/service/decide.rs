@@ -121,6 +121,7 @@ mod tests {
     use crate::geometry::{Pose, PoseSamples};
     use crate::grasp::calibrated::{CalibrationMap, GraspRule, IsotonicBlock, MAP_VERSION, RuleQuantity};
     use crate::grasp::{CalibrationStatus, Verdict};
+    use crate::service::codebooks::CodebookPlan;
     use crate::service::decisions::{Drawn, SampleBank};
     use crate::service::tracks::TrackState;
     use crate::service::{Service, ServiceConfig};
@@ -312,28 +313,33 @@ mod tests {
 
     #[test]
     fn a_default_service_runs_the_settings_the_shipped_map_is_fitted_for() {
-        // `scripts/calibrate.sh` fits for `service_settings_hash`; a default server tracking on
-        // its coarse codebook must compute the same, or a refitted map would still be refused
+        // `scripts/calibrate.sh` fits for `service_settings_hash`; a server with `serve`'s
+        // codebook plan must compute the same once the finer codebook is built, or a refitted
+        // map would still be refused
         let tmp = tempfile::tempdir().expect("tempdir");
-        let service = Service::open(ServiceConfig::new(tmp.path().to_path_buf())).expect("service");
+        let mut config = ServiceConfig::new(tmp.path().to_path_buf());
+        config.codebooks = CodebookPlan::with_fine_step(CodebookPlan::SERVE_FINE_STEP_DEG);
+        let service = Service::open(config).expect("service");
         service
             .register_object("can", "Can", crate::mesh::builtin("can").expect("can"), true)
             .expect("can");
         let gripper = service
             .gripper(crate::service::registry::DEFAULT_GRIPPER)
             .expect("gripper");
+        let fitted = crate::eval::calibration::service_settings_hash();
+        // before any codebook is built the server answers for its coarse stage: not fitted
+        assert_ne!(service.decision_settings_hash("can", &gripper), fitted);
+        // the plan's last stage (what every object tracks with once built) is what was fitted
+        let (codebook, step_deg) = service.config.codebooks.last_stage();
         assert_eq!(
-            service.decision_settings_hash("can", &gripper),
-            crate::eval::calibration::service_settings_hash()
+            crate::eval::calibration::calibration_settings_hash(&service.config.tracker, codebook, step_deg, &gripper),
+            fitted
         );
         // a depth-only object or another gripper is another configuration
         service
             .register_object("grey", "Grey can", crate::mesh::builtin("can").expect("can"), false)
             .expect("grey");
-        assert_ne!(
-            service.decision_settings_hash("grey", &gripper),
-            crate::eval::calibration::service_settings_hash()
-        );
+        assert_ne!(service.decision_settings_hash("grey", &gripper), fitted);
     }
 
     #[test]

@@ -287,9 +287,10 @@ pub struct HeadlessArgs {
     /// Data folder (store and codebook cache; the cache makes later runs start at once).
     #[arg(long)]
     pub data_dir: Option<std::path::PathBuf>,
-    /// Grid step of the finer codebook built after the coarse 10-degree one (as `serve`);
-    /// 10 keeps the coarse one, the configuration the shipped calibration map is fitted for.
-    #[arg(long, default_value_t = 10)]
+    /// Grid step of the finer codebook built after the coarse 10-degree one (as `serve`; the
+    /// default is `serve`'s, the configuration the shipped calibration map is fitted for); 10
+    /// keeps the coarse one.
+    #[arg(long, default_value_t = super::codebooks::CodebookPlan::SERVE_FINE_STEP_DEG)]
     pub codebook_step_deg: u32,
     /// A calibration map to answer with instead of the shipped one.
     #[arg(long)]
@@ -349,9 +350,7 @@ pub fn run_headless(args: &HeadlessArgs) -> anyhow::Result<Vec<LoopOutcome>> {
     let mut config = super::ServiceConfig::new(data_dir);
     config.accept_truth = true;
     crate::geometry::RotationGrid::new(args.codebook_step_deg)?;
-    if args.codebook_step_deg < config.codebooks.coarse_step_deg {
-        config.codebooks.fine = Some((args.codebook_step_deg, crate::tracker::CodebookConfig::default()));
-    }
+    config.codebooks = super::codebooks::CodebookPlan::with_fine_step(args.codebook_step_deg);
     if let Some(path) = &args.calibration_map {
         let text = std::fs::read_to_string(path)?;
         config.calibration_map = Some(Arc::new(crate::grasp::CalibrationMap::from_json(&text)?));
