@@ -2,7 +2,8 @@
 //! the mug is tracked from its detection box to within 2 cm (translation) and 1 cm (ADD-S) by
 //! the last frame (met in 8 of 8 encoder seeds), its axis is found (8 of 8; encoder v4 turned
 //! four upside down), and its rotation about its axis (handle hidden) is left ambiguous (7 of 8
-//! seeds with the default codes, 6 of 8 depth-only). A 10-frame clip is sensitive to the
+//! seeds with the default codes, 6 of 8 depth-only), and its translation regions hold the
+//! truth (90 % regions in at least 90 % of the frames). A 10-frame clip is sensitive to the
 //! encoder's random training set (with 12,000 training crops, 4 of 8 and 3 of 8), so the
 //! orientation points are judged over eight seeds, evaluated once and shared by the tests. The last tests measure the observation
 //! model frame by frame: chromaticity ranks the true pose higher than RGB, and the mesh's own
@@ -11,7 +12,7 @@
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use pregrasp::camera::{ColorImage, DepthImage};
 use pregrasp::dataset::Sequence;
-use pregrasp::eval::report::Mode;
+use pregrasp::eval::report::{Mode, TruthPlace};
 use pregrasp::eval::run::{EvalConfig, ModelStore, SequenceOutcome, evaluate_sequence};
 use pregrasp::geometry::{Pose, RotationGrid, ray_rotation};
 use pregrasp::render::Renderer;
@@ -143,6 +144,51 @@ fn real_mug_spin_about_its_axis_stays_open() {
     // Ambiguity about the axis (the mesh's z, the mug's height): the distribution must keep
     // several spins about it rather than pick one angle with confidence.
     assert_spin_kept_open_in_most_seeds(default_clips());
+}
+
+/// The mug's frames with a scored truth place (`eval::trust`).
+fn mug_truth_places(out: &SequenceOutcome) -> Vec<TruthPlace> {
+    out.traces
+        .iter()
+        .find(|t| t.object == "025_mug")
+        .map(|t| {
+            t.frames
+                .iter()
+                .filter_map(|f| f.errors.as_ref().and_then(|e| e.truth_place))
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+/// Issue 19 on real data: the reported translation regions hold the truth. Over the eight
+/// seeds' 80 frames the truth lies in the 90 % region in at least 90 % of them. Measured with
+/// the default spread floor (4 mm + 0.6 % of the range): 80 of 80, median region 28 cm^3;
+/// with a quarter of it (fitted on generated sequences, whose errors are half the real
+/// clip's 0.5-1.3 cm) 50 of 80 at 4.8 cm^3, missing the truth in most frames after the fourth.
+#[test]
+fn real_mug_translation_regions_hold_the_truth() {
+    let places: Vec<TruthPlace> = default_clips().iter().flat_map(mug_truth_places).collect();
+    assert_eq!(places.len(), SEEDS.len() * 10, "every frame scored");
+    let held: f64 = places
+        .iter()
+        .map(|p| p.translation_truth_in_90.expect("a translation region"))
+        .sum();
+    let mut volumes_cm3: Vec<f64> = places
+        .iter()
+        .filter_map(|p| p.translation_volume_90_m3)
+        .map(|v| v * 1e6)
+        .collect();
+    volumes_cm3.sort_by(f64::total_cmp);
+    eprintln!(
+        "truth in the 90 % translation region in {held:.1} of {} frames; median region {:.1} cm^3",
+        places.len(),
+        volumes_cm3[volumes_cm3.len() / 2]
+    );
+    assert!(
+        held >= 0.9 * places.len() as f64,
+        "the truth in the 90 % translation region in {held:.1} of {} frames",
+        places.len()
+    );
 }
 
 /// The mug's axis (its height) is found in every seed, never turned end over end: the top

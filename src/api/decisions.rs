@@ -402,16 +402,19 @@ pub fn router() -> OpenApiRouter<AppState> {
 /// (`calibration.running_settings_hash`). Successive answers about the track are smoothed: an
 /// answer `dt` seconds after the last moves the smoothed raw rate `r` by the weight
 /// `w = 1 - exp(-dt / smoothing.time_constant_s)`, `r <- r + w * (p_success_raw - r)` (with
-/// the shipped map's 1 s and a step every 0.2 s, `w` = 0.18: a raw rate jumping between 0.62 and
-/// 0.95 moves `r` by at most 0.06). `p_success` is the map at `r`: the isotonic fit of the
+/// the shipped map's 0.5 s and a step every 0.2 s, `w` = 0.33: a raw rate jumping between 0.62
+/// and 0.95 moves `r` by at most 0.11). `p_success` is the map at `r`: the isotonic fit of the
 /// outcome on the true pose against the smoothed raw rate on generated sequences, linear
 /// between its blocks' (mean raw rate, observed success rate) points. E.g. the shipped map's
-/// blocks at (0.831, 0.923) and (0.907, 0.981) give `p_success` = 0.923 + (r - 0.831) /
-/// (0.907 - 0.831) * (0.981 - 0.923), so 0.98 at r = 0.906. The answer is `grasp` when
+/// blocks at (0.805, 0.924) and (0.866, 0.952) give `p_success` = 0.924 + (r - 0.805) /
+/// (0.866 - 0.805) * (0.952 - 0.924), so 0.94 at r = 0.84. The answer is `grasp` when
 /// `rule.quantity` reaches `rule.threshold` in `rule.run_length` successive answers (answers on
-/// one tracker step count once; `smoothing.run` counts them): with the shipped rule `calibrated
-/// >= 0.98` in 2 answers, a planner gets `grasp` once two successive steps put the smoothed raw
-/// rate at 0.906 or more. Of the fitting data's answers
+/// one tracker step count once; `smoothing.run` counts them): with the shipped rule
+/// `calibrated_lower >= 0.88` in 1 answer, `ci95`'s lower end must reach 0.88; it is the
+/// smallest of the map at the smoothed raw interval's lower end and the Wilson lower bounds of
+/// the blocks that interval touches, and the block at 0.709 (211 of 235, bound 0.853) reaches up
+/// to 0.805, so a planner gets `grasp` once the smoothed raw interval starts above 0.805 (at an
+/// effective sample size of 110: `r` of 0.879 or more). Of the fitting data's answers
 /// with a given `p_success`, about that share succeeded on the true pose; `ci95` is the
 /// smoothed raw interval through the map, widened by the map's own uncertainty (its blocks'
 /// Wilson intervals). The map's rule was chosen by its failures: the per-answer and
