@@ -12,7 +12,7 @@
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use pregrasp::camera::{ColorImage, DepthImage};
 use pregrasp::dataset::Sequence;
-use pregrasp::eval::report::{Mode, TruthPlace};
+use pregrasp::eval::report::{Mode, ObjectTrace, TruthPlace};
 use pregrasp::eval::run::{EvalConfig, ModelStore, SequenceOutcome, evaluate_sequence};
 use pregrasp::geometry::{Pose, RotationGrid, ray_rotation};
 use pregrasp::render::Renderer;
@@ -99,7 +99,7 @@ fn seeds_where(clips: &[SequenceOutcome], ok: impl Fn(&SequenceOutcome) -> bool)
 #[test]
 fn real_mug_is_tracked_from_its_detection_box() {
     let within = seeds_where(default_clips(), |out| {
-        let mug = out.traces.iter().find(|t| t.object == "025_mug").expect("mug trace");
+        let mug = mug_trace(out);
         assert_eq!(mug.frames.len(), 10);
         let last = mug
             .frames
@@ -146,18 +146,18 @@ fn real_mug_spin_about_its_axis_stays_open() {
     assert_spin_kept_open_in_most_seeds(default_clips());
 }
 
+/// The mug's trace in the clip's evaluation.
+fn mug_trace(out: &SequenceOutcome) -> &ObjectTrace {
+    out.traces.iter().find(|t| t.object == "025_mug").expect("mug trace")
+}
+
 /// The mug's frames with a scored truth place (`eval::trust`).
 fn mug_truth_places(out: &SequenceOutcome) -> Vec<TruthPlace> {
-    out.traces
+    mug_trace(out)
+        .frames
         .iter()
-        .find(|t| t.object == "025_mug")
-        .map(|t| {
-            t.frames
-                .iter()
-                .filter_map(|f| f.errors.as_ref().and_then(|e| e.truth_place))
-                .collect()
-        })
-        .unwrap_or_default()
+        .filter_map(|f| f.errors.as_ref().and_then(|e| e.truth_place))
+        .collect()
 }
 
 /// Issue 19 on real data: the reported translation regions hold the truth. Over the eight
@@ -261,11 +261,9 @@ fn spin_spread(out: &SequenceOutcome) -> (f64, (f64, f64, f64)) {
         .filter(|(a, b)| axis(a).angle(&axis(b)).to_degrees() < 25.0)
         .map(|(a, b)| a.angle_to(b).to_degrees())
         .fold(0.0f64, f64::max);
-    let truth = out
-        .traces
-        .iter()
-        .find(|t| t.object == "025_mug")
-        .and_then(|t| t.frames.last())
+    let truth = mug_trace(out)
+        .frames
+        .last()
         .and_then(|f| f.errors.as_ref())
         .map(|e| (e.geodesic_error_deg, e.translation_error_m, e.add_s_m));
     eprintln!(
