@@ -1,14 +1,15 @@
 //! One filter step of the multi-view tracker at the paper's size: 110 particles (50 from the
 //! robot camera, 30 from each of two external cameras), 3 views of 640 x 480 with depth and
-//! colour, the full 37 x 72 x 72 grid, the robot driving as in an approach (2 cm and 0.5 degrees
-//! of yaw per step, back and forth over 30 steps, so that every step rebuilds the robot camera's
-//! bin map; the robot camera's image is rendered at each of those poses, so that the track stays
-//! converged however many steps criterion runs); a
-//! converged step and a first step (a new track, uniform rotation prior); per-stage times; and,
-//! in the same run, the plain f32
+//! colour, the full 37 x 72 x 72 grid, the robot driving as in an approach (along an arc, 2 cm
+//! and 0.5 degrees of yaw per step, there and back in reverse over 30 steps, so that every step
+//! rebuilds the robot camera's bin map; the robot camera's image is rendered at each of those
+//! poses, so that the track stays converged however many steps criterion runs); a converged
+//! step and a first step (a new track, uniform rotation prior); per-stage times; and, in the
+//! same run, the plain f32
 //! GEMM of the matching's size (330 x 128 by 128 x 191,808, the `gemm` crate on all threads)
 //! for the ratio. Before criterion's own runs, steps and GEMMs alternate
-//! (`PREGRASP_BENCH_PAIRS`, default 9) and the medians are printed: per stage, the step, the
+//! (`PREGRASP_BENCH_PAIRS`, default 9; `PREGRASP_BENCH_TRACE=1` prints every step with the
+//! estimate's error) and the medians are printed: per stage, the step, the
 //! GEMM, and the step / GEMM ratio of each pair (the machine's load cancels out of it).
 //!
 //! Run: `WGPU_BACKEND=vulkan cargo bench --bench tracker -- --noplot` (the codebook is cached
@@ -145,14 +146,14 @@ fn coarse_build_times(mesh: &Mesh) {
     }
 }
 
-/// The robot's odometry at step `i` of the bench's approach: 2 cm forward and 0.5 degrees of
-/// yaw per step, back and forth over 30 steps from `start`.
+/// The robot's odometry at step `i` of the bench's approach: along an arc, 2 cm forward and
+/// 0.5 degrees of yaw per step, there and back (in reverse) over 30 steps from `start`.
 fn approach(start: &RobotOdometry, i: usize) -> RobotOdometry {
-    let s = approach_phase(i) as f64;
-    let moved = Pose::from_parts(
-        Translation3::new(0.02 * s, 0.0, 0.0),
-        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.5f64.to_radians() * s),
+    let step = Pose::from_parts(
+        Translation3::new(0.02, 0.0, 0.0),
+        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.5f64.to_radians()),
     );
+    let moved = (0..approach_phase(i)).fold(Pose::identity(), |p, _| p * step);
     RobotOdometry {
         stamp_ns: start.stamp_ns + i as i64 * 100_000_000,
         odom_from_base: start.odom_from_base * moved,
@@ -166,13 +167,17 @@ fn approach_phase(i: usize) -> usize {
     if phase < 30 { phase } else { 60 - phase }
 }
 
-/// The frames without detections at every phase of the approach: the robot camera rendered at
-/// the robot's pose, the stationary cameras' frames as they are.
-struct ApproachFrames(Vec<Vec<CameraFrame>>);
+/// The frames without detections at every phase of the approach (the robot camera rendered
+/// at the robot's pose, the stationary cameras' frames as they are) and the object's true pose
+/// in the robot camera there.
+struct ApproachFrames(Vec<(Vec<CameraFrame>, Pose)>);
 
 impl ApproachFrames {
     fn at(&self, i: usize) -> &[CameraFrame] {
-        &self.0[approach_phase(i)]
+        &self.0[approach_phase(i)].0
+    }
+    fn truth(&self, i: usize) -> &Pose {
+        &self.0[approach_phase(i)].1
     }
 }
 
@@ -245,9 +250,16 @@ fn setup() -> Setup {
         (0..=30)
             .map(|i| {
                 let robot_i = approach(&odo, i).odom_from_base * base_from_camera;
-                let mut v = vec![quiet(&frame("robot", &k, &robot_i, &mesh, &world_from_object, &table))];
+                let fr = frame("robot", &k, &robot_i, &mesh, &world_from_object, &table);
+                if std::env::var("PREGRASP_BENCH_TRACE").is_ok() {
+                    eprintln!(
+                        "phase {i}: robot camera sees the object at {:?}",
+                        fr.detections.first().map(|d| d.bbox_xywh_px)
+                    );
+                }
+                let mut v = vec![quiet(&fr)];
                 v.extend(still[1..].iter().cloned());
-                v
+                (v, robot_i.inverse() * world_from_object)
             })
             .collect(),
     );
@@ -385,6 +397,28 @@ fn stages(
         };
         bins.push((report.matched_bins as f64, report.active_bins as f64));
         let t = report.timings;
+        if std::env::var("PREGRASP_BENCH_TRACE").is_ok() {
+            let truth = converged.truth(i + 1);
+            let (dt, dr) = tracker
+                .estimate(tracker.tracks()[0].id)
+                .map(|e| {
+                    (
+                        (e.reference_from_object.translation.vector - truth.translation.vector).norm(),
+                        e.reference_from_object.rotation.angle_to(&truth.rotation).to_degrees(),
+                    )
+                })
+                .unwrap_or((f64::NAN, f64::NAN));
+            eprintln!(
+                "step {i} (phase {}): error {dt:.3} m {dr:.1} deg; total {:.1} ms, crops {:.1}, matching {:.1}, fusion {:.1}, matched {}, active {}",
+                approach_phase(i + 1),
+                t.total_s * 1e3,
+                t.crops_s * 1e3,
+                t.matching_s * 1e3,
+                t.fusion_s * 1e3,
+                report.matched_bins,
+                report.active_bins
+            );
+        }
         let t0 = Instant::now();
         plain_gemm(&mut dst, &codes, &book, 330, k);
         let g = t0.elapsed().as_secs_f64();
@@ -396,7 +430,7 @@ fn stages(
     let med = |f: &dyn Fn(&StageTimings) -> f64| median(&mut all.iter().map(f).collect::<Vec<f64>>()) * 1e3;
     eprintln!("{} steps:", if first { "first" } else { "converged, moving robot," });
     eprintln!(
-        "stage medians over {n} steps (ms): motion {:.1}, crops {:.1}, encoding {:.1}, matching {:.1}, likelihoods {:.1}, fusion {:.1}, blur {:.1}, resampling {:.1}, estimates {:.1}, total {:.1}",
+        "stage medians over {n} steps (ms): motion {:.1}, crops {:.1}, encoding {:.1}, matching {:.1}, likelihoods {:.1}, fusion {:.1}, blur {:.1}, resampling {:.1}, estimates {:.1}, verification {:.1}, total {:.1}",
         med(&|t| t.motion_s),
         med(&|t| t.crops_s),
         med(&|t| t.encoding_s),
@@ -406,6 +440,7 @@ fn stages(
         med(&|t| t.blur_s),
         med(&|t| t.resampling_s),
         med(&|t| t.estimates_s),
+        med(&|t| t.verification_s),
         med(&|t| t.total_s)
     );
     eprintln!(

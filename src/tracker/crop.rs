@@ -532,12 +532,16 @@ fn suppress_plane_impl(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has
         let (i, j) = (k / f, k % f);
         ((j as f32 + 0.5) / f as f32 - 0.5, (i as f32 + 0.5) / f as f32 - 0.5)
     };
-    let ring: Vec<usize> = (0..f * f)
-        .filter(|&k| {
-            let (i, j) = (k / f, k % f);
-            i < w || j < w || i >= f - w || j >= f - w
-        })
-        .collect();
+    // the cells within `w` of the border, ascending
+    let mut ring: Vec<usize> = Vec::with_capacity(4 * w * f);
+    for i in 0..f {
+        if i < w || i >= f - w {
+            ring.extend(i * f..(i + 1) * f);
+        } else {
+            ring.extend(i * f..i * f + w);
+            ring.extend((i + 1) * f - w..(i + 1) * f);
+        }
+    }
     // valid ring cells; the in-range ones define planes, all of them score planes when
     // `steep` (against the clamped prediction), the in-range ones alone otherwise
     let all: Vec<(f32, f32, f32, usize)> = ring
@@ -632,32 +636,28 @@ fn suppress_plane_impl(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has
     };
     let color_tol = 0.15 * layout.color_weight;
     // residual per cell (clamped plane: the features are clamped to [0, 1])
-    let resid: Vec<Option<f32>> = (0..f * f)
-        .map(|k| {
-            if mask[k] {
-                return None;
-            }
-            let (u, v) = coord(k);
-            let p = (pl[0] + pl[1] * u + pl[2] * v).clamp(0.0, 1.0);
-            Some(x[k] - p)
-        })
-        .collect();
+    let cell_centre = |c: usize| (c as f32 + 0.5) / f as f32 - 0.5;
+    let mut resid: Vec<Option<f32>> = Vec::with_capacity(f * f);
+    for i in 0..f {
+        let v = cell_centre(i);
+        for j in 0..f {
+            let k = i * f + j;
+            resid.push((!mask[k]).then(|| {
+                let u = cell_centre(j);
+                x[k] - (pl[0] + pl[1] * u + pl[2] * v).clamp(0.0, 1.0)
+            }));
+        }
+    }
     let mut remove = vec![false; f * f];
     for k in 0..f * f {
         if mask[k] || x[k] >= 1.0 {
             continue;
         }
-        let (i, j) = ((k / f) as i64, (k % f) as i64);
+        let (i, j) = (k / f, k % f);
         let (mut sum, mut n) = (0.0f32, 0usize);
-        for di in -1..=1i64 {
-            for dj in -1..=1i64 {
-                let (a, b) = (i + di, j + dj);
-                if a >= 0
-                    && b >= 0
-                    && a < f as i64
-                    && b < f as i64
-                    && let Some(r) = resid[a as usize * f + b as usize]
-                {
+        for a in i.saturating_sub(1)..(i + 2).min(f) {
+            for b in j.saturating_sub(1)..(j + 2).min(f) {
+                if let Some(r) = resid[a * f + b] {
                     sum += r;
                     n += 1;
                 }

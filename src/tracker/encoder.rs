@@ -520,15 +520,22 @@ impl Encoder for LinearDenoisingEncoder {
     }
     fn encode_observations(&self, x: &[f32], mask: &[bool], n: usize, out: &mut [f32]) {
         let d = self.input_dim;
-        let xc: Vec<f32> = x[..n * d]
-            .iter()
-            .zip(&mask[..n * d])
-            .enumerate()
-            .map(|(i, (&v, &m))| {
-                let j = i % d;
-                (if m { self.mean_clean[j] } else { v }) - self.mean_observed[j]
-            })
-            .collect();
+        // missing inputs take the clean mean; then centred on the observed mean (row by row,
+        // in parallel: the same arithmetic per element)
+        let mut xc = vec![0f32; n * d];
+        xc.par_chunks_mut(d)
+            .zip(x[..n * d].par_chunks(d).zip(mask[..n * d].par_chunks(d)))
+            .for_each(|(dst, (xr, mr))| {
+                for ((((o, &v), &m), &mc), &mo) in dst
+                    .iter_mut()
+                    .zip(xr)
+                    .zip(mr)
+                    .zip(&self.mean_clean)
+                    .zip(&self.mean_observed)
+                {
+                    *o = (if m { mc } else { v }) - mo;
+                }
+            });
         self.project(&self.ridge_t, &xc, n, out);
         finish_codes(
             &self.blocks,

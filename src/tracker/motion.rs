@@ -68,12 +68,18 @@ pub fn sample_base_motion(
     let (x1, y1) = (odom_from_base_cur.translation.x, odom_from_base_cur.translation.y);
     let th0 = yaw_of(&odom_from_base_prev.rotation);
     let th1 = yaw_of(&odom_from_base_cur.rotation);
-    let trans = ((x1 - x0).powi(2) + (y1 - y0).powi(2)).sqrt();
-    let rot1 = if trans < 1e-6 {
+    let mut trans = ((x1 - x0).powi(2) + (y1 - y0).powi(2)).sqrt();
+    let mut rot1 = if trans < 1e-6 {
         0.0
     } else {
         wrap((y1 - y0).atan2(x1 - x0) - th0)
     };
+    // driving backwards is a negative translation, not a half turn, a translation and a half
+    // turn back: those turns would draw heading noise of about a radian per step
+    if rot1.abs() > PI / 2.0 {
+        rot1 = wrap(rot1 - PI);
+        trans = -trans;
+    }
     let rot2 = wrap(th1 - th0 - rot1);
     let a = noise;
     let rot1_n = rot1 - normal(rng, a.alpha1 * rot1 * rot1 + a.alpha2 * trans * trans);
@@ -170,6 +176,35 @@ mod tests {
         let near = spread(&planar(1.1, 2.0, 0.3), &mut rng);
         let far = spread(&planar(3.0, 2.0, 0.3), &mut rng);
         assert!(far > 5.0 * near, "near {near} far {far}");
+    }
+
+    #[test]
+    fn driving_backwards_draws_the_heading_noise_of_driving_forwards() {
+        // 2 cm along a gentle arc, forwards and backwards: the sampled heading change must
+        // spread alike (as a half turn there and back, it spread by about a radian)
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let a = planar(1.0, 2.0, 0.3);
+        let step = planar(0.02, 0.0, 0.5f64.to_radians());
+        let yaw_spread_deg = |b: &Pose, rng: &mut rand_chacha::ChaCha8Rng| -> f64 {
+            let exact = a.inverse() * b;
+            let errs: Vec<f64> = (0..2000)
+                .map(|_| {
+                    sample_base_motion(&a, b, &OdometryNoise::default(), rng)
+                        .rotation
+                        .angle_to(&exact.rotation)
+                })
+                .collect();
+            (errs.iter().map(|e| e * e).sum::<f64>() / errs.len() as f64)
+                .sqrt()
+                .to_degrees()
+        };
+        let forwards = yaw_spread_deg(&(a * step), &mut rng);
+        let backwards = yaw_spread_deg(&(a * step.inverse()), &mut rng);
+        assert!(forwards < 1.0, "forwards {forwards} deg");
+        assert!(
+            backwards < 1.5 * forwards,
+            "backwards {backwards} deg, forwards {forwards} deg"
+        );
     }
 
     #[test]
