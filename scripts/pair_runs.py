@@ -9,7 +9,9 @@ A frame's top modes "differ" when the two estimates are more than --mode-deg apa
 both within --mode-deg of the truth modulo the object's symmetries (so a can's spin about its
 axis is no difference); the test is conservative for symmetric objects. It is also reported
 over the frames where A is confident (entropy under half of a uniform histogram's,
---uniform-entropy): where A is nearly flat its top mode is arbitrary.
+--uniform-entropy): where A is nearly flat its top mode is arbitrary; and over the frames
+where either run is confident (a run that commits to an orientation the other does not share
+is a different answer; two nearly flat histograms both answer "not known").
 """
 import argparse
 import json
@@ -49,6 +51,7 @@ def main():
         raise SystemExit("no frame in common")
     differ = 0
     confident, differ_confident = 0, 0
+    either, differ_either = 0, 0
     differ_by_object = {}
     per_seq = {}
     for k in keys:
@@ -62,9 +65,13 @@ def main():
         d = apart and not both_right
         differ += d
         # A (the reference) confident: its entropy under half of uniform's
-        if ea.get("rotation_entropy") is not None and ea["rotation_entropy"] < 0.5 * args.uniform_entropy:
+        sure = [e.get("rotation_entropy") is not None and e["rotation_entropy"] < 0.5 * args.uniform_entropy for e in (ea, eb)]
+        if sure[0]:
             confident += 1
             differ_confident += d
+        if sure[0] or sure[1]:
+            either += 1
+            differ_either += d
         o = differ_by_object.setdefault(k[1], [0, 0])
         o[0] += d
         o[1] += 1
@@ -84,6 +91,8 @@ def main():
         "top_mode_differs_share": differ / len(keys),
         "a_confident_share": confident / len(keys),
         "top_mode_differs_where_a_confident_share": differ_confident / max(confident, 1),
+        "either_confident_share": either / len(keys),
+        "top_mode_differs_where_either_confident_share": differ_either / max(either, 1),
         "top_mode_differs_by_object": {o: v[0] / v[1] for o, v in sorted(differ_by_object.items())},
         "loglik_diff_b_minus_a_mean": mean,
         "loglik_diff_95ci": [lo, hi],

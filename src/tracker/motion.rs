@@ -5,7 +5,8 @@
 //! - The robot camera: moved by the base odometry through the odometry motion model of Thrun
 //!   et al. (Probabilistic Robotics, `sample_motion_model_odometry`: a rotation, a translation,
 //!   a rotation, each with noise growing with the motion, parameters alpha1..alpha4) on the
-//!   planar part of the base motion; the arm's `base_from_camera` is taken as exact.
+//!   planar part of the base motion, driving backwards as a negative translation; the arm's
+//!   `base_from_camera` is taken as exact.
 
 use crate::geometry::Pose;
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
