@@ -11,7 +11,10 @@ axis is no difference); the test is conservative for symmetric objects. It is al
 over the frames where A is confident (entropy under half of a uniform histogram's,
 --uniform-entropy): where A is nearly flat its top mode is arbitrary; and over the frames
 where either run is confident (a run that commits to an orientation the other does not share
-is a different answer; two nearly flat histograms both answer "not known").
+is a different answer; two nearly flat histograms both answer "not known"). The differing
+frames are split by which run is within --mode-deg of the truth (A only, B only, neither), and
+`b_wrong_where_a_right_share` is the share of A's right frames where B is wrong: the loss a
+replacement of A by B would cause.
 """
 import argparse
 import json
@@ -52,6 +55,9 @@ def main():
     differ = 0
     confident, differ_confident = 0, 0
     either, differ_either = 0, 0
+    # of the differing frames: only A within --mode-deg of the truth, only B, neither
+    only_a_right, only_b_right, neither_right = 0, 0, 0
+    a_right = 0
     differ_by_object = {}
     per_seq = {}
     for k in keys:
@@ -64,6 +70,12 @@ def main():
             apart = abs(ea["symmetric_error_deg"] - eb["symmetric_error_deg"]) > args.mode_deg
         d = apart and not both_right
         differ += d
+        ra, rb = (e["symmetric_error_deg"] < args.mode_deg for e in (ea, eb))
+        a_right += ra
+        if d:
+            only_a_right += ra and not rb
+            only_b_right += rb and not ra
+            neither_right += not ra and not rb
         # A (the reference) confident: its entropy under half of uniform's
         sure = [e.get("rotation_entropy") is not None and e["rotation_entropy"] < 0.5 * args.uniform_entropy for e in (ea, eb)]
         if sure[0]:
@@ -93,6 +105,9 @@ def main():
         "top_mode_differs_where_a_confident_share": differ_confident / max(confident, 1),
         "either_confident_share": either / len(keys),
         "top_mode_differs_where_either_confident_share": differ_either / max(either, 1),
+        "differing_frames_only_a_right_only_b_right_neither": [only_a_right, only_b_right, neither_right],
+        "a_right_share": a_right / len(keys),
+        "b_wrong_where_a_right_share": only_a_right / max(a_right, 1),
         "top_mode_differs_by_object": {o: v[0] / v[1] for o, v in sorted(differ_by_object.items())},
         "loglik_diff_b_minus_a_mean": mean,
         "loglik_diff_95ci": [lo, hi],
