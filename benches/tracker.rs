@@ -161,6 +161,14 @@ fn approach(start: &RobotOdometry, i: usize) -> RobotOdometry {
     }
 }
 
+/// Translation (m) and rotation (degrees) error of an estimate against the truth.
+fn pose_errors(estimate: &Pose, truth: &Pose) -> (f64, f64) {
+    (
+        (estimate.translation.vector - truth.translation.vector).norm(),
+        estimate.rotation.angle_to(&truth.rotation).to_degrees(),
+    )
+}
+
 /// How far (in steps of 2 cm) the robot has driven at step `i` of the approach: 0..=30.
 fn approach_phase(i: usize) -> usize {
     let phase = i % 60;
@@ -240,10 +248,9 @@ fn setup() -> Setup {
     }
     let peak_rss_mb = peak_rss_mb();
     let e = tracker.estimate(tracker.tracks()[0].id).expect("estimate");
+    let (dt, dr) = pose_errors(&e.reference_from_object, &truth);
     eprintln!(
-        "after 4 steps: translation error {:.3} m, rotation error {:.1} deg, std {:.3} m",
-        (e.reference_from_object.translation.vector - truth.translation.vector).norm(),
-        e.reference_from_object.rotation.angle_to(&truth.rotation).to_degrees(),
+        "after 4 steps: translation error {dt:.3} m, rotation error {dr:.1} deg, std {:.3} m",
         e.translation_std_m
     );
     let approach_frames = ApproachFrames(
@@ -401,12 +408,7 @@ fn stages(
             let truth = converged.truth(i + 1);
             let (dt, dr) = tracker
                 .estimate(tracker.tracks()[0].id)
-                .map(|e| {
-                    (
-                        (e.reference_from_object.translation.vector - truth.translation.vector).norm(),
-                        e.reference_from_object.rotation.angle_to(&truth.rotation).to_degrees(),
-                    )
-                })
+                .map(|e| pose_errors(&e.reference_from_object, truth))
                 .unwrap_or((f64::NAN, f64::NAN));
             eprintln!(
                 "step {i} (phase {}): error {dt:.3} m {dr:.1} deg; total {:.1} ms, crops {:.1}, matching {:.1}, fusion {:.1}, matched {}, active {}",

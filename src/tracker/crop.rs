@@ -528,10 +528,9 @@ fn suppress_plane_impl(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has
         return false;
     }
     let w = (f / 16).max(1);
-    let coord = |k: usize| -> (f32, f32) {
-        let (i, j) = (k / f, k % f);
-        ((j as f32 + 0.5) / f as f32 - 0.5, (i as f32 + 0.5) / f as f32 - 0.5)
-    };
+    // a cell's centre along one axis, in [-0.5, 0.5]; `coord` gives (u, v) of cell `k`
+    let cell_centre = |c: usize| (c as f32 + 0.5) / f as f32 - 0.5;
+    let coord = |k: usize| -> (f32, f32) { (cell_centre(k % f), cell_centre(k / f)) };
     // the cells within `w` of the border, ascending
     let mut ring: Vec<usize> = Vec::with_capacity(4 * w * f);
     for i in 0..f {
@@ -636,7 +635,6 @@ fn suppress_plane_impl(layout: &FeatureLayout, x: &mut [f32], mask: &[bool], has
     };
     let color_tol = 0.15 * layout.color_weight;
     // residual per cell (clamped plane: the features are clamped to [0, 1])
-    let cell_centre = |c: usize| (c as f32 + 0.5) / f as f32 - 0.5;
     let mut resid: Vec<Option<f32>> = Vec::with_capacity(f * f);
     for i in 0..f {
         let v = cell_centre(i);
