@@ -301,6 +301,10 @@ pub struct HeadlessArgs {
     /// Write every decision and the loops' outcomes here (JSON).
     #[arg(long)]
     pub out: Option<std::path::PathBuf>,
+    /// A JSON file of tracker settings over the defaults, as `eval --tracker-config` takes
+    /// (the shipped map then answers `stale` unless it was fitted for them).
+    #[arg(long)]
+    pub tracker_config: Option<std::path::PathBuf>,
 }
 
 /// One decision of a headless loop, checked on the true pose.
@@ -323,6 +327,9 @@ pub struct HeadlessDecision {
     /// The track's error against the truth at its last step: metres, degrees (modulo the
     /// can's exact symmetries).
     pub truth_error: Option<(f64, f64)>,
+    /// The distribution the answer sampled: its translation std (metres, RMS over the axes),
+    /// rotation entropy (nats) and top rotation mode's mass.
+    pub spread: Option<(f64, f64, f64)>,
 }
 
 /// What one loop gave the target.
@@ -351,6 +358,10 @@ pub fn run_headless(args: &HeadlessArgs) -> anyhow::Result<Vec<LoopOutcome>> {
     config.accept_truth = true;
     crate::geometry::RotationGrid::new(args.codebook_step_deg)?;
     config.codebooks = super::codebooks::CodebookPlan::with_fine_step(args.codebook_step_deg);
+    if let Some(path) = &args.tracker_config {
+        let text = std::fs::read_to_string(path)?;
+        config.tracker = crate::eval::cli::tracker_config_with(&serde_json::from_str(&text)?)?;
+    }
     if let Some(path) = &args.calibration_map {
         let text = std::fs::read_to_string(path)?;
         config.calibration_map = Some(Arc::new(crate::grasp::CalibrationMap::from_json(&text)?));
@@ -470,6 +481,7 @@ pub fn run_headless(args: &HeadlessArgs) -> anyhow::Result<Vec<LoopOutcome>> {
                         &(reference_from_world * truth),
                         plane.as_ref(),
                     )?;
+                    let track = state.track(id).ok();
                     let d = HeadlessDecision {
                         loop_index,
                         t_s: t_loop,
@@ -489,11 +501,13 @@ pub fn run_headless(args: &HeadlessArgs) -> anyhow::Result<Vec<LoopOutcome>> {
                             .reasons
                             .first()
                             .map(|r| (format!("{:?}", r.test).to_lowercase(), r.failure_share)),
-                        truth_error: state
-                            .track(id)
-                            .ok()
-                            .and_then(|t| t.truth)
+                        truth_error: track
+                            .as_ref()
+                            .and_then(|t| t.truth.as_ref())
                             .map(|e| (e.translation_error_m, e.orientation_error_deg)),
+                        spread: track
+                            .as_ref()
+                            .map(|t| (t.translation_std_m, t.rotation_entropy, t.top_mode_mass)),
                     };
                     outcome.decisions += 1;
                     if d.grasp {
