@@ -126,6 +126,15 @@ pub fn tracker_config_with(overrides: &serde_json::Value) -> anyhow::Result<Trac
     serde_json::from_value(base).map_err(|e| anyhow::anyhow!("tracker config: {e}"))
 }
 
+/// [`tracker_config_with`] the overrides of a JSON file (`--tracker-config` of `eval` and
+/// `demo-loops`); errors name the file.
+pub fn tracker_config_from_file(path: &std::path::Path) -> anyhow::Result<TrackerConfig> {
+    let text = std::fs::read_to_string(path).map_err(|e| anyhow::anyhow!("tracker config {}: {e}", path.display()))?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| anyhow::anyhow!("tracker config {}: {e}", path.display()))?;
+    tracker_config_with(&v)
+}
+
 impl Args {
     /// The run's configuration.
     pub fn config(&self) -> anyhow::Result<EvalConfig> {
@@ -190,13 +199,7 @@ impl Args {
                 }
             },
             tracker: match &self.tracker_config {
-                Some(p) => {
-                    let text = std::fs::read_to_string(p)
-                        .map_err(|e| anyhow::anyhow!("tracker config {}: {e}", p.display()))?;
-                    let v: serde_json::Value = serde_json::from_str(&text)
-                        .map_err(|e| anyhow::anyhow!("tracker config {}: {e}", p.display()))?;
-                    tracker_config_with(&v)?
-                }
+                Some(p) => tracker_config_from_file(p)?,
                 None => TrackerConfig::default(),
             },
             detection_seed: self.seed,

@@ -359,8 +359,7 @@ pub fn run_headless(args: &HeadlessArgs) -> anyhow::Result<Vec<LoopOutcome>> {
     crate::geometry::RotationGrid::new(args.codebook_step_deg)?;
     config.codebooks = super::codebooks::CodebookPlan::with_fine_step(args.codebook_step_deg);
     if let Some(path) = &args.tracker_config {
-        let text = std::fs::read_to_string(path)?;
-        config.tracker = crate::eval::cli::tracker_config_with(&serde_json::from_str(&text)?)?;
+        config.tracker = crate::eval::cli::tracker_config_from_file(path)?;
     }
     if let Some(path) = &args.calibration_map {
         let text = std::fs::read_to_string(path)?;
