@@ -532,16 +532,27 @@ impl Tracker {
         let mut total = vec![0.0; modes.len()];
         let mut scored = false;
         for (frame, view_from_ref, _) in views.iter().filter(|v| seen_by.contains(&v.0.camera)) {
+            // the track's own detection in this view bounds the pixels its object may explain
+            let object_box = frame
+                .detections
+                .iter()
+                .find(|d| d.object == model.name && self.detection_holds(ti, frame, d, view_from_ref))
+                .map(|d| d.bbox_xywh_px);
             let poses: Vec<Pose> = modes
                 .iter()
                 .map(|q| view_from_ref * Pose::from_parts(mean_ref, *q))
                 .collect();
+            let view = crate::tracker::verify::DepthView {
+                intrinsics: &frame.intrinsics,
+                depth: &frame.depth,
+                object_box_px: object_box,
+            };
             if let Some(s) = crate::tracker::verify::score_hypotheses(
                 &model.mesh,
-                &frame.intrinsics,
-                &frame.depth,
+                &view,
                 &poses,
                 model.codebook.diameter_m,
+                est.translation_std_m / 3f64.sqrt(),
                 &cfg,
             ) {
                 for (t, v) in total.iter_mut().zip(s) {

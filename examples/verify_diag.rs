@@ -1,0 +1,125 @@
+//! Does the mode verification prefer the true pose over its half turns? An evaluation-only
+//! diagnostic: the scorer of `tracker::verify` is handed the ground truth of generated frames
+//! (placed with an error of the given size, as a track's mean is) beside the truth turned by
+//! 180 degrees about each object axis, and counts how often the truth scores higher.
+//!
+//! ```text
+//! cargo run --release --example verify_diag -- DATA [PLACEMENT_ERROR_M=0.01] [PLACEMENT_SIGMA_M=0.01] [MAX_RANGE_M=inf] [DEPTH_SIGMA_PER_M=0.02] [USE_BOX=1]
+//! ```
+//!
+//! `DATA` is one sequence or a folder of them (`pregrasp generate`); frames 0, 10, ..., 90 of
+//! every camera. `PLACEMENT_SIGMA_M` is the scorer's placement spread (0: no slide); with
+//! `USE_BOX` 1 the object's visible box bounds the pixels it must explain (as the track's
+//! detection does in the filter).
+//! Nothing here reaches the filter.
+
+use nalgebra::{UnitQuaternion, Vector3};
+use pregrasp::dataset::{Sequence, find_sequences};
+use pregrasp::geometry::Pose;
+use pregrasp::tracker::verify::{DepthView, VerificationConfig, score_hypotheses};
+use rand::SeedableRng;
+use rand_distr::{Distribution, Normal};
+
+fn arg(i: usize, default: f64) -> anyhow::Result<f64> {
+    Ok(match std::env::args().nth(i) {
+        Some(s) => s.parse()?,
+        None => default,
+    })
+}
+
+fn main() -> anyhow::Result<()> {
+    let dir = std::env::args()
+        .nth(1)
+        .ok_or_else(|| anyhow::anyhow!("usage: verify_diag DATA [error_m] [sigma_m] [max_range_m] [depth_sigma]"))?;
+    let error_m = arg(2, 0.01)?;
+    let placement_sigma_m = arg(3, 0.01)?;
+    let max_range_m = arg(4, f64::INFINITY)?;
+    let config = VerificationConfig {
+        depth_sigma_m: arg(5, VerificationConfig::default().depth_sigma_m)?,
+        ..VerificationConfig::default()
+    };
+    let use_box = arg(6, 1.0)? > 0.0;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+    let normal = Normal::new(0.0, 1.0)?;
+    let turns =
+        [Vector3::x(), Vector3::y(), Vector3::z()].map(|a| UnitQuaternion::from_scaled_axis(a * std::f64::consts::PI));
+    let (mut all_wins, mut all_n) = ([0usize; 3], 0usize);
+    for seq_dir in find_sequences(std::path::Path::new(&dir))? {
+        let seq = Sequence::open(&seq_dir)?;
+        let Some(target) = seq.rig.target.clone() else { continue };
+        let obj = seq
+            .rig
+            .object_by_name(&target)
+            .ok_or_else(|| anyhow::anyhow!("no {target} in the rig"))?
+            .obj_id;
+        let mesh = seq.load_mesh(&target)?;
+        let diameter_m = mesh.diameter_m();
+        let (mut wins, mut n) = ([0usize; 3], 0usize);
+        for (camera, stream) in &seq.cameras {
+            for f in (0..100u32).step_by(10) {
+                let (Some(meta), Some(gts)) = (stream.frames.get(&f), stream.gt.get(&f)) else {
+                    continue;
+                };
+                let Some(gt) = gts.iter().find(|g| g.obj_id == obj) else {
+                    continue;
+                };
+                if gt.camera_from_object.translation.z > max_range_m {
+                    continue;
+                }
+                let mut placed = gt.camera_from_object;
+                placed.translation.vector += Vector3::from_fn(|_, _| normal.sample(&mut rng) * error_m);
+                let mut hypotheses = vec![placed];
+                hypotheses.extend(
+                    turns
+                        .iter()
+                        .map(|q| Pose::from_parts(placed.translation, placed.rotation * q)),
+                );
+                // the detector's box: BOP's visible box as the generator's detections are
+                let gi = gts.iter().position(|g| g.obj_id == obj).unwrap_or(0);
+                let object_box = if use_box {
+                    stream
+                        .gt_info
+                        .get(&f)
+                        .and_then(|v| v.get(gi))
+                        .and_then(|i| i.bbox_visib)
+                        .map(|[x, y, w, h]| [x as f64, y as f64, w as f64, h as f64])
+                } else {
+                    None
+                };
+                let depth = seq.load_depth(camera, f)?;
+                let view = DepthView {
+                    intrinsics: &meta.intrinsics,
+                    depth: &depth,
+                    object_box_px: object_box,
+                };
+                let Some(s) = score_hypotheses(&mesh, &view, &hypotheses, diameter_m, placement_sigma_m, &config)
+                else {
+                    continue;
+                };
+                n += 1;
+                for k in 0..3 {
+                    wins[k] += usize::from(s[0] > s[k + 1]);
+                }
+            }
+        }
+        println!(
+            "{} {target}: the truth beats its x / y / z half turn in {} / {} / {} of {n} views",
+            seq_dir.display(),
+            wins[0],
+            wins[1],
+            wins[2]
+        );
+        for k in 0..3 {
+            all_wins[k] += wins[k];
+        }
+        all_n += n;
+    }
+    println!(
+        "all: {} / {} / {} of {all_n} ({:.2} of the comparisons)",
+        all_wins[0],
+        all_wins[1],
+        all_wins[2],
+        all_wins.iter().sum::<usize>() as f64 / (3 * all_n).max(1) as f64
+    );
+    Ok(())
+}
