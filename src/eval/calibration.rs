@@ -84,6 +84,23 @@ pub fn calibration_settings(
     tracker.max_tracks_per_object = 0;
     let mut codebook = codebook.clone();
     codebook.seed = 0;
+    let mut tracker = serde_json::to_value(&tracker).unwrap_or_default();
+    // verification settings added after the shipped map was fitted are left out at their
+    // defaults: that map was fitted with the verification off, where they have no effect
+    if let Some(v) = tracker.pointer_mut("/verification").and_then(|v| v.as_object_mut()) {
+        let defaults = [
+            (
+                "occlusion_truncation",
+                crate::tracker::verify::default_occlusion_truncation(),
+            ),
+            ("min_view_change_deg", 0.0),
+        ];
+        for (key, default) in defaults {
+            if v.get(key).and_then(|x| x.as_f64()) == Some(default) {
+                v.remove(key);
+            }
+        }
+    }
     serde_json::json!({
         "tracker": tracker,
         "codebook": codebook,
@@ -302,6 +319,13 @@ mod tests {
         let mut g2 = g.clone();
         g2.max_opening_m += 0.01;
         assert_ne!(h, calibration_settings_hash(&t, &c, 10, &g2));
+        // the verification settings left out at their defaults still count when set
+        let mut t4 = t.clone();
+        t4.verification.occlusion_truncation = 0.5;
+        assert_ne!(h, calibration_settings_hash(&t4, &c, 10, &g));
+        let mut t5 = t.clone();
+        t5.verification.min_view_change_deg = 10.0;
+        assert_ne!(h, calibration_settings_hash(&t5, &c, 10, &g));
     }
 
     #[test]

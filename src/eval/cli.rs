@@ -267,5 +267,10 @@ mod tests {
         assert!(unknown.unwrap_err().to_string().contains("observation.sigmaa"));
         assert!(tracker_config_with(&serde_json::json!({"blur_sigma_bins": "wide"})).is_err());
         assert!(tracker_config_with(&serde_json::json!([1, 2])).is_err());
+        // every field of the defaults can be overridden, the verification's included
+        let v = tracker_config_with(&serde_json::json!({"verification": {"min_mode_mass": 0.1, "min_view_change_deg": 10.0, "occlusion_truncation": 0.5}}))
+            .expect("verification overrides");
+        assert_eq!(v.verification.min_view_change_deg, 10.0);
+        assert_eq!(v.verification.occlusion_truncation, 0.5);
     }
 }

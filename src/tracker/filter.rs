@@ -294,6 +294,9 @@ struct TrackState {
     slice_cursor: usize,
     /// The cameras' disagreement with the track (see [`RecoveryConfig`]).
     disagreement: Disagreement,
+    /// Per camera, the direction (histogram frame) from which the track was last verified
+    /// against its depth (`VerificationConfig::min_view_change_deg`).
+    verified_from: Vec<(String, Vector3<f64>)>,
 }
 
 /// One camera's entry of a track's bin-map cache: the camera's name, the rotation of its last
@@ -724,6 +727,7 @@ impl Tracker {
                         self.states[i].reference_from_hist = Pose::identity();
                         self.states[i].map_cache.clear();
                         self.states[i].disagreement = Disagreement::default();
+                        self.states[i].verified_from.clear();
                         self.tracks[i].status = TrackStatus::Initialising;
                         self.tracks[i].weak_steps = 0;
                         self.tracks[i].reinitialised = Some(Reinitialisation {
@@ -759,6 +763,7 @@ impl Tracker {
                             map_cache: Vec::new(),
                             slice_cursor: 0,
                             disagreement: Disagreement::default(),
+                            verified_from: Vec::new(),
                         });
                         report.tracks_created.push(id);
                         self.states.len() - 1
@@ -944,6 +949,7 @@ mod tests {
             map_cache: vec![],
             slice_cursor: 0,
             disagreement: Disagreement::default(),
+            verified_from: Vec::new(),
         };
         floor_components(&mut s, 0.05);
         let w1: f64 = s.weights[2] + s.weights[3];

@@ -29,16 +29,15 @@ pub struct VerificationConfig {
     pub truncation: f64,
     /// Largest penalty of a pixel whose observed surface lies in front of the hypothesis (an
     /// occluder: a neighbouring object hides part of it), in units of sigma squared.
-    /// Left out of the serialised settings at its default, so that the settings hash of the
-    /// shipped calibration map (fitted with the verification off, where this has no effect)
-    /// stays that of the running settings.
-    #[serde(
-        default = "default_occlusion_truncation",
-        skip_serializing_if = "is_default_occlusion_truncation"
-    )]
+    #[serde(default = "default_occlusion_truncation")]
     pub occlusion_truncation: f64,
     /// Crop pixels per independent observation (neighbouring residuals are correlated).
     pub pixels_per_observation: f64,
+    /// A camera verifies a track again only once its direction to the track has turned by at
+    /// least this much since it last did (0: every step). Successive frames from one viewpoint
+    /// repeat the same misfit of a wrong shape, not independent evidence.
+    #[serde(default)]
+    pub min_view_change_deg: f64,
 }
 
 impl Default for VerificationConfig {
@@ -50,17 +49,14 @@ impl Default for VerificationConfig {
             depth_sigma_m: 0.02,
             truncation: 4.0,
             occlusion_truncation: default_occlusion_truncation(),
+            min_view_change_deg: 0.0,
             pixels_per_observation: 64.0,
         }
     }
 }
 
-fn default_occlusion_truncation() -> f64 {
+pub(crate) fn default_occlusion_truncation() -> f64 {
     1.0
-}
-
-fn is_default_occlusion_truncation(v: &f64) -> bool {
-    *v == default_occlusion_truncation()
 }
 
 /// The crop of a view around an object: its intrinsics (scaled to at most `max_side` pixels)

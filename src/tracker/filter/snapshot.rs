@@ -390,5 +390,6 @@ fn state_from_column(
         map_cache: Vec::new(),
         slice_cursor: 0,
         disagreement: Disagreement::default(),
+        verified_from: Vec::new(),
     }
 }

@@ -531,7 +531,26 @@ impl Tracker {
         let model = &self.models[mi];
         let mut total = vec![0.0; modes.len()];
         let mut scored = false;
+        // the cameras whose direction to the track turned enough since they last verified it
+        let min_turn = cfg.min_view_change_deg.to_radians();
+        let hist_from_ref = self.states[ti].reference_from_hist.inverse();
+        let mean_hist = hist_from_ref * Point3::from(mean_ref.vector);
+        let mut fresh: Vec<(String, Vector3<f64>)> = Vec::new();
         for (frame, view_from_ref, _) in views.iter().filter(|v| seen_by.contains(&v.0.camera)) {
+            let camera_hist = hist_from_ref * (view_from_ref.inverse() * Point3::origin());
+            let Some(dir) = (camera_hist - mean_hist).try_normalize(1e-9) else {
+                continue;
+            };
+            let last = self.states[ti]
+                .verified_from
+                .iter()
+                .find(|(c, _)| c == &frame.camera)
+                .map(|(_, d)| *d);
+            if min_turn <= 0.0 || last.is_none_or(|d| d.angle(&dir) >= min_turn) {
+                fresh.push((frame.camera.clone(), dir));
+            }
+        }
+        for (frame, view_from_ref, _) in views.iter().filter(|v| fresh.iter().any(|(c, _)| c == &v.0.camera)) {
             // the track's own detection in this view bounds the pixels its object may explain
             let object_box = frame
                 .detections
@@ -563,6 +582,13 @@ impl Tracker {
         }
         if !scored {
             return false;
+        }
+        let s = &mut self.states[ti];
+        for (camera, dir) in fresh {
+            match s.verified_from.iter_mut().find(|(c, _)| *c == camera) {
+                Some(entry) => entry.1 = dir,
+                None => s.verified_from.push((camera, dir)),
+            }
         }
         let best = total.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
         let factors: Vec<f32> = total.iter().map(|t| (t - best).exp() as f32).collect();
