@@ -115,6 +115,25 @@ fn a_flipped_mode_is_rejected_by_the_verification() {
     );
 }
 
+#[test]
+fn still_cameras_verify_a_track_once() {
+    // two stationary cameras and a still mug: with `min_view_change_deg` the cameras verify
+    // the track at its first step and not again (the same misfit of a wrong shape is not new
+    // evidence at every frame), and that once still prefers the truth
+    let once = VerificationConfig {
+        min_mode_mass: 0.1,
+        min_view_change_deg: 10.0,
+        ..VerificationConfig::default()
+    };
+    let (truth, flip, verified) = flip_densities(once);
+    eprintln!("verified once: truth {truth:.3e} flip {flip:.3e} ({verified} verifications)");
+    assert_eq!(verified, 1, "one verification over three steps");
+    assert!(
+        truth > 20.0 * flip,
+        "the flip is rejected: truth {truth:.3e} flip {flip:.3e}"
+    );
+}
+
 /// Three cameras see the box at `a`; the track starts on a look-alike (`decoy`, the same mesh
 /// under another name, so no detection of `box` is there). Returns the step (10 Hz) at which
 /// the track's error fell below 3 cm and stayed there, and its last re-initialisation.
