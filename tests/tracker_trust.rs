@@ -1,7 +1,8 @@
 //! Earning trust on synthetic rendered scenes (coarse 10-degree grid, 160 x 120 images): a
-//! flipped rotation mode rejected by the verification against the depth images, a wrong start
-//! recovered when the cameras see the object elsewhere, and two instances of one object that do
-//! not make a track jump back and forth.
+//! flipped rotation mode rejected by the verification against the depth images (at every step,
+//! or once while the cameras stand still), a wrong start recovered when the cameras see the
+//! object elsewhere, and two instances of one object that do not make a track jump back and
+//! forth.
 
 #![allow(clippy::unwrap_used)] // test helpers: a failure is a test failure
 
