@@ -295,14 +295,9 @@ struct TrackState {
     /// The cameras' disagreement with the track (see [`RecoveryConfig`]).
     disagreement: Disagreement,
     /// Per camera, the direction (histogram frame) from which the track was last verified
-    /// against its depth and the modes it compared (histogram frame;
-    /// `VerificationConfig::min_view_change_deg`).
-    verified_from: Vec<VerifiedView>,
+    /// against its depth (`VerificationConfig::min_view_change_deg`).
+    verified_from: Vec<(String, Vector3<f64>)>,
 }
-
-/// A camera's last verification of a track: its name, its direction from the track and the
-/// rotation modes it compared.
-type VerifiedView = (String, Vector3<f64>, Vec<UnitQuaternion<f64>>);
 
 /// One camera's entry of a track's bin-map cache: the camera's name, the rotation of its last
 /// bin map, and the whole grid's map when cached.

@@ -531,13 +531,10 @@ impl Tracker {
         let model = &self.models[mi];
         let mut total = vec![0.0; modes.len()];
         let mut scored = false;
-        // the cameras whose direction to the track turned enough since they last verified it,
-        // or that have not yet compared one of these modes
+        // the cameras whose direction to the track turned enough since they last verified it
         let min_turn = cfg.min_view_change_deg.to_radians();
-        let same_mode = self.config.estimate.mode_merge_rad;
         let hist_from_ref = self.states[ti].reference_from_hist.inverse();
         let mean_hist = hist_from_ref * Point3::from(mean_ref.vector);
-        let modes_hist: Vec<UnitQuaternion<f64>> = modes.iter().map(|q| hist_from_ref.rotation * q).collect();
         let mut fresh: Vec<(String, Vector3<f64>)> = Vec::new();
         for (frame, view_from_ref, _) in views.iter().filter(|v| seen_by.contains(&v.0.camera)) {
             let camera_hist = hist_from_ref * (view_from_ref.inverse() * Point3::origin());
@@ -547,14 +544,9 @@ impl Tracker {
             let last = self.states[ti]
                 .verified_from
                 .iter()
-                .find(|(c, _, _)| c == &frame.camera);
-            let stale = |(_, d, compared): &(String, Vector3<f64>, Vec<UnitQuaternion<f64>>)| {
-                d.angle(&dir) >= min_turn
-                    || modes_hist
-                        .iter()
-                        .any(|m| compared.iter().all(|c| c.angle_to(m) > same_mode))
-            };
-            if min_turn <= 0.0 || last.is_none_or(stale) {
+                .find(|(c, _)| c == &frame.camera)
+                .map(|(_, d)| *d);
+            if min_turn <= 0.0 || last.is_none_or(|d| d.angle(&dir) >= min_turn) {
                 fresh.push((frame.camera.clone(), dir));
             }
         }
@@ -593,12 +585,9 @@ impl Tracker {
         }
         let s = &mut self.states[ti];
         for (camera, dir) in fresh {
-            match s.verified_from.iter_mut().find(|(c, _, _)| *c == camera) {
-                Some(entry) => {
-                    entry.1 = dir;
-                    entry.2 = modes_hist.clone();
-                }
-                None => s.verified_from.push((camera, dir, modes_hist.clone())),
+            match s.verified_from.iter_mut().find(|(c, _)| *c == camera) {
+                Some(entry) => entry.1 = dir,
+                None => s.verified_from.push((camera, dir)),
             }
         }
         let best = total.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
