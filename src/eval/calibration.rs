@@ -87,16 +87,10 @@ pub fn calibration_settings(
     let mut tracker = serde_json::to_value(&tracker).unwrap_or_default();
     // verification settings added after the shipped map was fitted are left out at their
     // defaults: that map was fitted with the verification off, where they have no effect
+    let defaults = serde_json::to_value(crate::tracker::VerificationConfig::default()).unwrap_or_default();
     if let Some(v) = tracker.pointer_mut("/verification").and_then(|v| v.as_object_mut()) {
-        let defaults = [
-            (
-                "occlusion_truncation",
-                crate::tracker::verify::default_occlusion_truncation(),
-            ),
-            ("min_view_change_deg", 0.0),
-        ];
-        for (key, default) in defaults {
-            if v.get(key).and_then(|x| x.as_f64()) == Some(default) {
+        for key in ["occlusion_truncation", "min_view_change_deg"] {
+            if v.get(key) == defaults.get(key) {
                 v.remove(key);
             }
         }

@@ -55,7 +55,7 @@ impl Default for VerificationConfig {
     }
 }
 
-pub(crate) fn default_occlusion_truncation() -> f64 {
+fn default_occlusion_truncation() -> f64 {
     1.0
 }
 
@@ -162,11 +162,11 @@ pub struct DepthView<'a> {
 /// its truncated squared depth residual (truncated lower where the observed surface is in
 /// front: an occluder), an uncovered pixel the truncation when the observed surface there
 /// lies within the object's depth range and inside the track's detection box (grown by a
-/// tenth; something the hypothesis does not explain). A slide across the ray costs its length under `placement_sigma_m` (the track's
-/// translation spread per axis) as a Gaussian prior: slid freely, a half-turned hypothesis
-/// shifted by a quarter of the object fits the depth about as often as the true pose does
-/// (`examples/verify_diag.rs`). `placement_sigma_m <= 0`: no slide. `None` when the object
-/// is outside the image.
+/// tenth; something the hypothesis does not explain). A slide across the ray costs its length
+/// under `placement_sigma_m` (the track's translation spread per axis) as a Gaussian prior:
+/// slid freely, a half-turned hypothesis shifted by a quarter of the object fits the depth
+/// about as often as the true pose does (`examples/verify_diag.rs`). `placement_sigma_m <= 0`:
+/// no slide. `None` when the object is outside the image.
 pub fn score_hypotheses(
     mesh: &Mesh,
     view: &DepthView,
@@ -229,6 +229,11 @@ pub fn score_hypotheses(
         0
     };
     let (m_per_px_x, m_per_px_y) = (centre.z / crop.intrinsics.fx(), centre.z / crop.intrinsics.fy());
+    let inv_two_var = if reach > 0 {
+        1.0 / (2.0 * placement_sigma_m * placement_sigma_m)
+    } else {
+        0.0
+    };
     let scores = camera_from_object
         .iter()
         .map(|p| {
@@ -275,12 +280,7 @@ pub fn score_hypotheses(
                 let mut dx = -reach;
                 while dx <= reach {
                     let (sx_m, sy_m) = (dx as f64 * m_per_px_x, dy as f64 * m_per_px_y);
-                    let prior = if reach > 0 {
-                        (sx_m * sx_m + sy_m * sy_m) / (2.0 * placement_sigma_m * placement_sigma_m)
-                    } else {
-                        0.0
-                    };
-                    best = best.min(cost_at(dx, dy) / ppo + prior);
+                    best = best.min(cost_at(dx, dy) / ppo + (sx_m * sx_m + sy_m * sy_m) * inv_two_var);
                     dx += 2;
                 }
                 dy += 2;
