@@ -432,7 +432,7 @@ fn stages(
     let med = |f: &dyn Fn(&StageTimings) -> f64| median(&mut all.iter().map(f).collect::<Vec<f64>>()) * 1e3;
     eprintln!("{} steps:", if first { "first" } else { "converged, moving robot," });
     eprintln!(
-        "stage medians over {n} steps (ms): motion {:.1}, crops {:.1}, encoding {:.1}, matching {:.1}, likelihoods {:.1}, fusion {:.1}, blur {:.1}, resampling {:.1}, estimates {:.1}, verification {:.1}, total {:.1}",
+        "stage medians over {n} steps (ms): motion {:.1}, crops {:.1}, encoding {:.1}, matching {:.1}, likelihoods {:.1}, fusion {:.1}, blur {:.1}, resampling {:.1}, estimates {:.1}, verification {:.1}, registration {:.1}, total {:.1}",
         med(&|t| t.motion_s),
         med(&|t| t.crops_s),
         med(&|t| t.encoding_s),
@@ -443,6 +443,7 @@ fn stages(
         med(&|t| t.resampling_s),
         med(&|t| t.estimates_s),
         med(&|t| t.verification_s),
+        med(&|t| t.registration_s),
         med(&|t| t.total_s)
     );
     eprintln!(

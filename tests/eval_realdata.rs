@@ -33,6 +33,18 @@ fn real_sequence() -> Sequence {
 }
 
 /// The evaluation of the real clip with the default tracker, a 10-degree grid and `codebook`.
+/// The tracker's settings: the defaults, or a JSON file of settings over them named by
+/// `PREGRASP_REAL_TRACKER_CONFIG` (to judge other settings by the real clip, as `eval
+/// --tracker-config` judges them by generated sequences).
+fn tracker_config() -> TrackerConfig {
+    match std::env::var_os("PREGRASP_REAL_TRACKER_CONFIG") {
+        Some(path) => {
+            pregrasp::eval::cli::tracker_config_from_file(std::path::Path::new(&path)).expect("tracker config")
+        }
+        None => TrackerConfig::default(),
+    }
+}
+
 fn evaluate_real_clip_with(codebook: CodebookConfig) -> SequenceOutcome {
     let seq = real_sequence();
     let renderer = Renderer::new().expect("renderer");
@@ -43,7 +55,7 @@ fn evaluate_real_clip_with(codebook: CodebookConfig) -> SequenceOutcome {
         cache_dir: Some(tmp.path().to_path_buf()),
         grid_step_deg: 10,
         codebook,
-        tracker: TrackerConfig::default(),
+        tracker: tracker_config(),
         detection_seed: 0,
         max_frames: None,
         frame_stride: 1,

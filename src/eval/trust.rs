@@ -372,6 +372,7 @@ mod tests {
                     tables: &self.tables,
                     reference_from_hist: Pose::identity(),
                     spread: crate::tracker::estimate::SpreadConfig::NONE,
+                    floor_information: None,
                 }
             }
 

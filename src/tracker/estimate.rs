@@ -78,6 +78,68 @@ impl SpreadConfig {
     }
 }
 
+/// What a component's floor adds to its spread: an isotropic standard deviation (the plain
+/// floor), or a covariance (the floor combined with the depth registration's information:
+/// tight along what the depth fixes, the floor elsewhere) with its square root.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum FloorExtra {
+    Isotropic(f64),
+    Matrix { cov: Matrix3<f64>, sqrt: Matrix3<f64> },
+}
+
+impl FloorExtra {
+    /// The covariance it adds.
+    pub fn cov(&self) -> Matrix3<f64> {
+        match self {
+            Self::Isotropic(s) => Matrix3::identity() * (s * s),
+            Self::Matrix { cov, .. } => *cov,
+        }
+    }
+
+    /// A draw of it from three standard normal numbers `z`.
+    pub fn draw(&self, z: &Vector3<f64>) -> Vector3<f64> {
+        match self {
+            Self::Isotropic(s) => z * *s,
+            Self::Matrix { sqrt, .. } => sqrt * z,
+        }
+    }
+
+    pub fn is_zero(&self) -> bool {
+        match self {
+            Self::Isotropic(s) => *s <= 0.0,
+            Self::Matrix { cov, .. } => cov.trace() <= 0.0,
+        }
+    }
+}
+
+impl SpreadConfig {
+    /// The floor's addition to a component of covariance `cov` at `mean`; with the depth
+    /// registration's `information` (reference frame, 1/m^2) the floor is the covariance of
+    /// the isotropic floor's Gaussian combined with it, and the addition is the positive part
+    /// of that less `cov`.
+    pub fn extra(&self, mean: &Vector3<f64>, cov: &Matrix3<f64>, information: Option<&Matrix3<f64>>) -> FloorExtra {
+        let Some(h) = information else {
+            return FloorExtra::Isotropic(self.extra_std_m(mean, cov));
+        };
+        let floor = self.floor_m + self.floor_per_m * mean.norm();
+        if floor <= 0.0 {
+            return FloorExtra::Isotropic(0.0);
+        }
+        let Some(c) = (h + Matrix3::identity() / (floor * floor)).try_inverse() else {
+            return FloorExtra::Isotropic(self.extra_std_m(mean, cov));
+        };
+        let eig = (c - cov).symmetric_eigen();
+        let (mut add, mut sqrt) = (Matrix3::zeros(), Matrix3::zeros());
+        for j in 0..3 {
+            let lam = eig.eigenvalues[j].max(0.0);
+            let v = eig.eigenvectors.column(j);
+            add += v * v.transpose() * lam;
+            sqrt += v * v.transpose() * lam.sqrt();
+        }
+        FloorExtra::Matrix { cov: add, sqrt }
+    }
+}
+
 impl Default for SpreadConfig {
     fn default() -> Self {
         Self {
@@ -106,6 +168,9 @@ pub struct ParticleSet<'a> {
     /// The floor on each component's spread (see [`SpreadConfig`]): the reported components,
     /// covariance and samples include it.
     pub spread: SpreadConfig,
+    /// The depth registration's information on the position in this step (reference frame,
+    /// 1/m^2), which narrows the floor along what it fixes ([`SpreadConfig::extra`]).
+    pub floor_information: Option<Matrix3<f64>>,
 }
 
 impl ParticleSet<'_> {
@@ -149,8 +214,7 @@ impl ParticleSet<'_> {
                 .map(|i| self.weights[i])
                 .sum();
             let (mean, cov) = component_moments(self.positions_m, self.weights, self.sources, ci);
-            let extra = self.spread.extra_std_m(&mean, &cov);
-            let cov = cov + Matrix3::identity() * (extra * extra);
+            let cov = cov + self.spread.extra(&mean, &cov, self.floor_information.as_ref()).cov();
             let mut c = [[0.0; 3]; 3];
             for (r, row) in c.iter_mut().enumerate() {
                 for (k, v) in row.iter_mut().enumerate() {
@@ -181,21 +245,24 @@ impl ParticleSet<'_> {
                 .filter(|&i| self.sources[i] == c)
                 .map(|i| self.weights[i])
                 .sum();
-            cov += Matrix3::identity() * (wc * extra * extra);
+            cov += match extra {
+                FloorExtra::Isotropic(e) => Matrix3::identity() * (wc * e * e),
+                FloorExtra::Matrix { cov, .. } => cov * wc,
+            };
         }
         (cov, cov.trace().max(0.0).sqrt())
     }
 
     /// Per source camera: its index, its weighted mean and the standard deviation its floor
     /// adds (see [`SpreadConfig`]).
-    fn component_floors(&self) -> Vec<(usize, Vector3<f64>, f64)> {
+    fn component_floors(&self) -> Vec<(usize, Vector3<f64>, FloorExtra)> {
         let mut cams = self.sources.to_vec();
         cams.sort_unstable();
         cams.dedup();
         cams.into_iter()
             .map(|c| {
                 let (mean, cov) = component_moments(self.positions_m, self.weights, self.sources, c);
-                (c, mean, self.spread.extra_std_m(&mean, &cov))
+                (c, mean, self.spread.extra(&mean, &cov, self.floor_information.as_ref()))
             })
             .collect()
     }
@@ -362,12 +429,17 @@ impl ParticleSet<'_> {
             let e = (e + (rng.random::<f64>() - 0.5) * s).clamp(0.0, std::f64::consts::PI);
             let a = a + (rng.random::<f64>() - 0.5) * s;
             let t = t + (rng.random::<f64>() - 0.5) * s;
-            let jitter = floors.iter().find(|f| f.0 == self.sources[p]).map_or(0.0, |f| f.2);
+            let jitter = floors
+                .iter()
+                .find(|f| f.0 == self.sources[p])
+                .map_or(FloorExtra::Isotropic(0.0), |f| f.2);
             let pos = self.positions_m[p]
-                + if jitter > 0.0 {
-                    Vector3::from_fn(|_, _| rng.sample::<f64, _>(rand_distr::StandardNormal) * jitter)
-                } else {
+                + if jitter.is_zero() {
                     Vector3::zeros()
+                } else {
+                    jitter.draw(&Vector3::from_fn(|_, _| {
+                        rng.sample::<f64, _>(rand_distr::StandardNormal)
+                    }))
                 };
             let t_h = self
                 .reference_from_hist
@@ -594,6 +666,29 @@ mod tests {
     }
 
     #[test]
+    fn the_registration_narrows_the_floor_only_where_it_fixes_the_position() {
+        let spread = SpreadConfig {
+            bandwidth: 0.3,
+            floor_m: 0.01,
+            floor_per_m: 0.0,
+        };
+        let mean = Vector3::new(0.0, 0.0, 1.0);
+        // the depth fixes x to a millimetre and says nothing of y and z
+        let info = Matrix3::from_diagonal(&Vector3::new(1e6, 0.0, 0.0));
+        let extra = spread.extra(&mean, &Matrix3::zeros(), Some(&info)).cov();
+        assert!((extra[(0, 0)].sqrt() - 0.001).abs() < 1e-4, "{extra}");
+        assert!((extra[(1, 1)].sqrt() - 0.01).abs() < 1e-9 && (extra[(2, 2)].sqrt() - 0.01).abs() < 1e-9);
+        // a cloud already wider than the combined floor gets nothing more
+        let wide = Matrix3::identity() * 4e-4;
+        assert!(spread.extra(&mean, &wide, Some(&info)).is_zero());
+        // without the registration: the plain isotropic floor
+        match spread.extra(&mean, &Matrix3::zeros(), None) {
+            FloorExtra::Isotropic(s) => assert!((s - 0.01).abs() < 1e-12, "{s}"),
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
     fn a_collapsed_component_reports_at_least_the_spread_floor() {
         use rand::SeedableRng;
         let grid = RotationGrid::new(15).unwrap();
@@ -614,6 +709,7 @@ mod tests {
             tables: &tables,
             reference_from_hist: Pose::identity(),
             spread,
+            floor_information: None,
         };
         let floor = 0.004 + 0.006 * 2.0;
         let c = &set.components(&["cam".to_string()])[0];
@@ -680,6 +776,7 @@ mod tests {
                 tables: &tables,
                 reference_from_hist: Pose::identity(),
                 spread: SpreadConfig::NONE,
+                floor_information: None,
             };
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
             let s = set.sample_poses(4000, &mut rng);

@@ -12,8 +12,9 @@
 //!    fused likelihood; the particle weight is multiplied by the marginal (Eq. 7) and the depth
 //!    term.
 //! 4. Component weights are floored (`min_component_weight`) so that Eq. 2's mixture stays a
-//!    mixture; estimates; resampling *within* each source camera's component (systematic), so
-//!    each camera keeps its share of particles.
+//!    mixture; estimates (with the depth registration's positions when it is on, see
+//!    [`RegistrationConfig`]); resampling *within* each source camera's component
+//!    (systematic), so each camera keeps its share of particles.
 //!
 //! Lost tracks: when the best similarity stays below `lost_similarity` for `lost_after_steps`
 //! steps while the track's mean lies inside some camera's image, the track is `Lost`; the next
@@ -33,6 +34,7 @@ pub use crate::tracker::estimate::SpreadConfig;
 use crate::tracker::estimate::{EstimateConfig, ParticleSet};
 use crate::tracker::motion::{OdometryNoise, brownian, move_with_odometry};
 use crate::tracker::observation::ObservationConfig;
+pub use crate::tracker::register::RegistrationConfig;
 use crate::tracker::sparse::{BlurWork, Lattice, RotationState};
 pub use crate::tracker::verify::VerificationConfig;
 use crate::tracker::{
@@ -107,6 +109,9 @@ pub struct TrackerConfig {
     /// Competing rotation modes checked against the depth images.
     #[serde(default)]
     pub verification: VerificationConfig,
+    /// The translation registered to near views' depth weighs the particles.
+    #[serde(default)]
+    pub registration: RegistrationConfig,
     /// Each step, this share of every histogram's mass above its floor moves to the object's
     /// near-symmetric turns (`turn_max_distance_rel`): a view cannot be trusted to tell a pose
     /// from a turn that moves the surface by a few millimetres, so the turn keeps some mass
@@ -241,6 +246,7 @@ impl Default for TrackerConfig {
             spread: SpreadConfig::default(),
             recovery: RecoveryConfig::default(),
             verification: VerificationConfig::default(),
+            registration: RegistrationConfig::default(),
             turn_share: 0.0,
             turn_max_distance_rel: default_turn_max_distance_rel(),
             seed: 1,
@@ -297,6 +303,14 @@ struct TrackState {
     /// Per camera, the direction (histogram frame) from which the track was last verified
     /// against its depth (`VerificationConfig::min_view_change_deg`).
     verified_from: Vec<(String, Vector3<f64>)>,
+    /// The depth registration's information on the position in the current step (reference
+    /// frame, 1/m^2; `None`: not registered), which narrows the spread's floor.
+    registered_information: Option<nalgebra::Matrix3<f64>>,
+    /// The particles' positions updated by that registration (reported, not kept: see
+    /// `Tracker::register_translation`).
+    registered_positions: Option<Vec<Vector3<f64>>>,
+    /// With `registered_information` (`H`): `sum H_v t_v` over the views' fitted positions.
+    registered_target: Option<Vector3<f64>>,
 }
 
 /// One camera's entry of a track's bin-map cache: the camera's name, the rotation of its last
@@ -310,6 +324,7 @@ impl TrackState {
     fn n(&self) -> usize {
         self.positions.len()
     }
+    /// The particles as the filter keeps them.
     fn set<'a>(&'a self, tables: &'a GridTables, spread: SpreadConfig) -> ParticleSet<'a> {
         ParticleSet {
             positions_m: &self.positions,
@@ -319,6 +334,21 @@ impl TrackState {
             tables,
             reference_from_hist: self.reference_from_hist,
             spread,
+            floor_information: None,
+        }
+    }
+
+    /// The particles as the track reports them: with this step's depth registration, its
+    /// positions and its narrower floor (see `Tracker::register_translation`).
+    fn reported_set<'a>(&'a self, tables: &'a GridTables, spread: SpreadConfig) -> ParticleSet<'a> {
+        // a component added since (a detection between steps) drops the registration
+        match self.registered_positions.as_deref() {
+            Some(moved) if moved.len() == self.positions.len() => ParticleSet {
+                positions_m: moved,
+                floor_information: self.registered_information,
+                ..self.set(tables, spread)
+            },
+            _ => self.set(tables, spread),
         }
     }
 }
@@ -459,7 +489,7 @@ impl Tracker {
             return None;
         }
         Some(
-            s.set(&self.models[s.model].tables, self.config.spread)
+            s.reported_set(&self.models[s.model].tables, self.config.spread)
                 .sample_poses(n, rng),
         )
     }
@@ -475,7 +505,7 @@ impl Tracker {
             return None;
         }
         Some(
-            s.set(&self.models[s.model].tables, self.config.spread)
+            s.reported_set(&self.models[s.model].tables, self.config.spread)
                 .orientation_loglik(reference_from_object_rotation),
         )
     }
@@ -494,7 +524,7 @@ impl Tracker {
             return None;
         }
         Some(
-            s.set(&self.models[s.model].tables, self.config.spread)
+            s.reported_set(&self.models[s.model].tables, self.config.spread)
                 .rotation_densities(rotations, orbit),
         )
     }
@@ -764,6 +794,9 @@ impl Tracker {
                             slice_cursor: 0,
                             disagreement: Disagreement::default(),
                             verified_from: Vec::new(),
+                            registered_information: None,
+                            registered_positions: None,
+                            registered_target: None,
                         });
                         report.tracks_created.push(id);
                         self.states.len() - 1
@@ -950,6 +983,9 @@ mod tests {
             slice_cursor: 0,
             disagreement: Disagreement::default(),
             verified_from: Vec::new(),
+            registered_information: None,
+            registered_positions: None,
+            registered_target: None,
         };
         floor_components(&mut s, 0.05);
         let w1: f64 = s.weights[2] + s.weights[3];

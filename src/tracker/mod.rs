@@ -56,6 +56,7 @@ pub mod filter;
 pub mod kernels;
 pub mod motion;
 pub mod observation;
+pub mod register;
 pub mod sparse;
 pub mod verify;
 
@@ -70,8 +71,8 @@ pub use crate::sensor::{CameraFrame, CameraMount, Detection, RobotOdometry};
 pub use codebook::{Codebook, CodebookConfig, ColorFeatures};
 pub use encoder::{Encoder, LinearDenoisingEncoder};
 pub use filter::{
-    RecoveryConfig, SpreadConfig, TrackPrior, TrackSnapshot, Tracker, TrackerConfig, TrackerSnapshot,
-    VerificationConfig,
+    RecoveryConfig, RegistrationConfig, SpreadConfig, TrackPrior, TrackSnapshot, Tracker, TrackerConfig,
+    TrackerSnapshot, VerificationConfig,
 };
 
 /// Errors of the tracker module.
@@ -215,6 +216,9 @@ pub struct StepReport {
     /// Tracks whose competing rotation modes were checked against the images in this step.
     #[serde(default)]
     pub verified: usize,
+    /// Tracks whose particles were weighed by their depth registration in this step.
+    #[serde(default)]
+    pub registered: usize,
 }
 
 /// Seconds spent per stage in one step (summed over objects).
@@ -232,5 +236,8 @@ pub struct StageTimings {
     /// Rendering and scoring competing rotation modes ([`verify`]).
     #[serde(default)]
     pub verification_s: f64,
+    /// Registering the translation to near views' depth ([`register`]).
+    #[serde(default)]
+    pub registration_s: f64,
     pub total_s: f64,
 }

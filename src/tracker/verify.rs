@@ -61,9 +61,9 @@ fn default_occlusion_truncation() -> f64 {
 
 /// The crop of a view around an object: its intrinsics (scaled to at most `max_side` pixels)
 /// and the observed depth there (the median of the source pixels each crop pixel covers).
-struct Crop {
-    intrinsics: Intrinsics,
-    depth: Vec<f32>,
+pub(crate) struct Crop {
+    pub(crate) intrinsics: Intrinsics,
+    pub(crate) depth: Vec<f32>,
     /// Source pixel of the crop's pixel (0, 0) centre's top-left block corner, and the scale.
     origin: [f64; 2],
     scale: f64,
@@ -79,7 +79,7 @@ impl Crop {
     }
 }
 
-fn crop_around(
+pub(crate) fn crop_around(
     k: &Intrinsics,
     depth: &DepthImage,
     centre: &Point3<f64>,

@@ -237,7 +237,7 @@ impl Tracker {
     fn track_snapshot(&self, i: usize) -> TrackSnapshot {
         let (track, s) = (&self.tracks[i], &self.states[i]);
         let tables = &self.models[s.model].tables;
-        let mixture = s.set(tables, self.config.spread).mixture();
+        let mixture = s.reported_set(tables, self.config.spread).mixture();
         let total: f64 = mixture.iter().sum();
         let mut bins: Vec<(u32, f32)> = mixture
             .iter()
@@ -391,5 +391,8 @@ fn state_from_column(
         slice_cursor: 0,
         disagreement: Disagreement::default(),
         verified_from: Vec::new(),
+        registered_information: None,
+        registered_positions: None,
+        registered_target: None,
     }
 }

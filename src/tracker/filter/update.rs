@@ -7,7 +7,7 @@ use crate::geometry::Pose;
 use crate::tracker::observation::{ViewEvidence, ViewImage, encode_particles, view_evidence};
 use crate::tracker::sparse::{Lattice, RotationState, fused_max, fused_row, fused_update, map_bins, match_rows};
 use crate::tracker::{CameraFrame, StepReport, TrackStatus};
-use nalgebra::{Point3, UnitQuaternion, Vector3};
+use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
 use std::sync::Arc;
 use std::time::Instant;
@@ -118,6 +118,10 @@ impl Tracker {
         let kd = codebook.code_dim();
         let obs_cfg = self.config.observation;
         let matching = self.config.matching;
+        // the registration's narrower floor holds for the step that registered only
+        self.states[ti].registered_information = None;
+        self.states[ti].registered_target = None;
+        self.states[ti].registered_positions = None;
         let mean_ref = self.states[ti].set(&tables, self.config.spread).mean_position();
         let reference_from_hist = self.states[ti].reference_from_hist;
         let mean_hist = reference_from_hist
@@ -404,12 +408,19 @@ impl Tracker {
                 self.refresh_estimate(ti);
             }
             report.timings.verification_s += t0.elapsed().as_secs_f64();
+            let t0 = Instant::now();
+            if self.register_translation(ti, views, &seen_by) {
+                report.registered += 1;
+                self.refresh_estimate(ti);
+            }
+            report.timings.registration_s += t0.elapsed().as_secs_f64();
         }
 
         // resampling within components, then the bins that went back to the floor
         let t0 = Instant::now();
         if had_evidence {
             self.resample(ti);
+            self.move_registered(ti);
         }
         if !matching.dense {
             let rule = matching.prune_rule(self.config.prior_floor_rel);
@@ -628,13 +639,104 @@ impl Tracker {
         true
     }
 
+    /// When the registration is on (and the track's top rotation mode holds at least
+    /// `RegistrationConfig::min_mode_share` of its modes' mass), registers the object at the track's mean and that mode to the depth
+    /// of every view that saw it ([`crate::tracker::register`]) and moves the
+    /// particles by a Kalman update towards the views' registered positions. Returns whether
+    /// it did.
+    fn register_translation(&mut self, ti: usize, views: &[(&CameraFrame, Pose, usize)], seen_by: &[String]) -> bool {
+        let cfg = self.config.registration;
+        if cfg.information_scale <= 0.0 {
+            return false;
+        }
+        let Some(est) = self.states[ti].estimate.as_ref() else {
+            return false;
+        };
+        let total: f64 = est.rotation_modes.iter().map(|m| m.mass).sum();
+        let Some(top) = est.rotation_modes.first() else {
+            return false;
+        };
+        if total <= 0.0 || top.mass / total < cfg.min_mode_share {
+            return false;
+        }
+        let [x, y, z, w] = top.rotation_xyzw;
+        let q = UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z));
+        let mean_ref = est.reference_from_object.translation;
+        let model = &self.models[self.states[ti].model];
+        let diameter_m = model.codebook.diameter_m;
+        // the rotation's error: the estimate's rotation-vector covariance (object frame) plus
+        // the grid's quantisation (a uniform bin's variance per axis)
+        let bin_var = model.tables.grid.step_rad().powi(2) / 12.0;
+        let rotation_cov = Matrix3::from_fn(|r, c| est.covariance_6x6[r + 3][c + 3]) + Matrix3::identity() * bin_var;
+        // per view: the registered position and its information, both in the reference frame
+        let mut fits: Vec<(Vector3<f64>, Matrix3<f64>)> = Vec::new();
+        for (frame, view_from_ref, _) in views.iter().filter(|v| seen_by.contains(&v.0.camera)) {
+            let pose = view_from_ref * Pose::from_parts(mean_ref, q);
+            let Some(reg) = crate::tracker::register::register_translation(
+                &model.mesh,
+                &frame.intrinsics,
+                &frame.depth,
+                &pose,
+                diameter_m,
+                &rotation_cov,
+                &cfg,
+            ) else {
+                continue;
+            };
+            let r = view_from_ref.rotation.inverse().to_rotation_matrix();
+            let target = mean_ref.vector + r * reg.delta_m;
+            let info = r.matrix() * reg.information * r.matrix().transpose() * cfg.information_scale;
+            fits.push((target, info));
+        }
+        if fits.is_empty() {
+            return false;
+        }
+        // a Kalman update of every particle by the registered positions, per source camera's
+        // component with that component's spread as the prior: the reported cloud moves and
+        // narrows along what the depth fixes. The filter keeps its own positions: a cloud
+        // narrowed there crops every particle alike, and the rotation histograms, which the
+        // crops' spread keeps apart, turned confidently wrong on the tuning set (mugs, bananas)
+        let h: Matrix3<f64> = fits.iter().map(|f| f.1).sum();
+        let b: Vector3<f64> = fits.iter().map(|f| f.1 * f.0).sum();
+        self.states[ti].registered_target = Some(b);
+        self.states[ti].registered_information = Some(h);
+        self.move_registered(ti);
+        true
+    }
+
+    /// The positions the track reports with this step's registration: each source camera's
+    /// component updated by it (a Kalman update with the component's spread as the prior),
+    /// after the registration and again after resampling.
+    fn move_registered(&mut self, ti: usize) {
+        let spread = self.config.spread;
+        let s = &mut self.states[ti];
+        let (Some(h), Some(b)) = (s.registered_information, s.registered_target) else {
+            s.registered_positions = None;
+            return;
+        };
+        let mut moved = s.positions.clone();
+        for c in components(&s.sources) {
+            let (mean, cov) = crate::tracker::estimate::component_moments(&s.positions, &s.weights, &s.sources, c);
+            let prior = cov + spread.extra(&mean, &cov, None).cov();
+            let Some(gain) = prior.try_inverse().and_then(|p_inv| (p_inv + h).try_inverse()) else {
+                continue;
+            };
+            for (p, src) in moved.iter_mut().zip(&s.sources) {
+                if *src == c {
+                    *p += gain * (b - h * *p);
+                }
+            }
+        }
+        s.registered_positions = Some(moved);
+    }
+
     /// Recomputes a track's estimate from its particles.
     pub(super) fn refresh_estimate(&mut self, ti: usize) {
         let tables = self.models[self.states[ti].model].tables.clone();
         let status = self.tracks[ti].status;
         let est = {
             let s = &self.states[ti];
-            let set = s.set(&tables, self.config.spread);
+            let set = s.reported_set(&tables, self.config.spread);
             let mean = set.mean_position();
             let mean_hist = s
                 .reference_from_hist
@@ -725,7 +827,7 @@ impl Tracker {
                     .then(|| (cov * h2 + nalgebra::Matrix3::identity() * 1e-12).cholesky())
                     .flatten()
                     .map(|c| c.l());
-                (c, mean, chol, spread.extra_std_m(&mean, &cov))
+                (c, mean, chol, spread.extra(&mean, &cov, None))
             })
             .collect();
         let shrink = (1.0 - (spread.bandwidth * spread.bandwidth).min(1.0)).sqrt();
@@ -740,7 +842,7 @@ impl Tracker {
             if let Some(l) = chol {
                 *p = mean + (*p - mean) * shrink + l * z;
             }
-            *p += e * *extra;
+            *p += extra.draw(&e);
         }
         s.positions = positions;
         s.rot.resample(&src_idx);
@@ -752,7 +854,12 @@ impl Tracker {
 
 /// One component's regularisation kernel: its camera, mean, the Cholesky factor of `h^2 S`
 /// (none without shrinkage) and the standard deviation its floor adds.
-type Kernel = (usize, Vector3<f64>, Option<nalgebra::Matrix3<f64>>, f64);
+type Kernel = (
+    usize,
+    Vector3<f64>,
+    Option<nalgebra::Matrix3<f64>>,
+    crate::tracker::estimate::FloorExtra,
+);
 
 /// The distinct source cameras of a track's particles, ascending.
 fn components(sources: &[usize]) -> Vec<usize> {
