@@ -271,22 +271,27 @@ mod tests {
         (mesh, k, pose)
     }
 
+    /// The default registration of `placed`, with its rotation taken as exact.
+    fn register_at(mesh: &Mesh, k: &Intrinsics, depth: &DepthImage, placed: &Pose) -> Registration {
+        register_translation(
+            mesh,
+            k,
+            depth,
+            placed,
+            mesh.diameter_m(),
+            &Matrix3::zeros(),
+            &RegistrationConfig::default(),
+        )
+        .expect("registration")
+    }
+
     #[test]
     fn a_misplaced_cylinder_is_pulled_back_to_its_rendered_depth() {
         let (mesh, k, truth) = scene();
         let depth = raster::render(&k, &[(&mesh, truth)], 0.02, [0, 0, 0]).depth;
         let mut placed = truth;
         placed.translation.vector += Vector3::new(0.006, -0.004, 0.008);
-        let reg = register_translation(
-            &mesh,
-            &k,
-            &depth,
-            &placed,
-            mesh.diameter_m(),
-            &Matrix3::zeros(),
-            &RegistrationConfig::default(),
-        )
-        .expect("registration");
+        let reg = register_at(&mesh, &k, &depth, &placed);
         let after = placed.translation.vector + reg.delta_m - truth.translation.vector;
         // the side of a cylinder fixes its position across its axis; along the axis the fit
         // claims to know little, and what it claims covers what is left
@@ -313,16 +318,7 @@ mod tests {
         let depth = raster::render(&k, &[(&mesh, truth)], 0.02, [0, 0, 0]).depth;
         let mut placed = truth;
         placed.translation.vector += Vector3::new(0.0, 0.0, 0.01);
-        let reg = register_translation(
-            &mesh,
-            &k,
-            &depth,
-            &placed,
-            mesh.diameter_m(),
-            &Matrix3::zeros(),
-            &RegistrationConfig::default(),
-        )
-        .expect("registration");
+        let reg = register_at(&mesh, &k, &depth, &placed);
         // the face's normal (the ray) is known to the cap; sliding sideways is not known
         let along = reg.information[(2, 2)];
         let across = reg.information[(0, 0)].max(reg.information[(1, 1)]);
@@ -348,16 +344,7 @@ mod tests {
         }
         let mut placed = truth;
         placed.translation.vector += Vector3::new(-0.004, 0.003, 0.006);
-        let reg = register_translation(
-            &mesh,
-            &k,
-            &depth,
-            &placed,
-            mesh.diameter_m(),
-            &Matrix3::zeros(),
-            &RegistrationConfig::default(),
-        )
-        .expect("registration");
+        let reg = register_at(&mesh, &k, &depth, &placed);
         let after = placed.translation.vector + reg.delta_m - truth.translation.vector;
         assert!(after.norm() < 0.003, "left {:.4} m", after.norm());
     }
