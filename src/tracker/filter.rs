@@ -109,7 +109,7 @@ pub struct TrackerConfig {
     /// Competing rotation modes checked against the depth images.
     #[serde(default)]
     pub verification: VerificationConfig,
-    /// The translation registered to near views' depth weighs the particles.
+    /// The translation registered to the views' depth narrows what the track reports.
     #[serde(default)]
     pub registration: RegistrationConfig,
     /// Each step, this share of every histogram's mass above its floor moves to the object's
@@ -303,14 +303,18 @@ struct TrackState {
     /// Per camera, the direction (histogram frame) from which the track was last verified
     /// against its depth (`VerificationConfig::min_view_change_deg`).
     verified_from: Vec<(String, Vector3<f64>)>,
-    /// The depth registration's information on the position in the current step (reference
-    /// frame, 1/m^2; `None`: not registered), which narrows the spread's floor.
-    registered_information: Option<nalgebra::Matrix3<f64>>,
-    /// The particles' positions updated by that registration (reported, not kept: see
-    /// `Tracker::register_translation`).
-    registered_positions: Option<Vec<Vector3<f64>>>,
-    /// With `registered_information` (`H`): `sum H_v t_v` over the views' fitted positions.
-    registered_target: Option<Vector3<f64>>,
+    /// This step's depth registration (`None`: not registered).
+    registered: Option<Registered>,
+}
+
+/// A step's depth registration of a track (see `Tracker::register_translation`).
+struct Registered {
+    /// Information on the position (reference frame, 1/m^2), which also narrows the floor.
+    information: nalgebra::Matrix3<f64>,
+    /// `sum H_v t_v` over the views' fitted positions.
+    target: Vector3<f64>,
+    /// The particles' positions updated by it (reported, not kept).
+    positions: Vec<Vector3<f64>>,
 }
 
 /// One camera's entry of a track's bin-map cache: the camera's name, the rotation of its last
@@ -342,10 +346,10 @@ impl TrackState {
     /// positions and its narrower floor (see `Tracker::register_translation`).
     fn reported_set<'a>(&'a self, tables: &'a GridTables, spread: SpreadConfig) -> ParticleSet<'a> {
         // a component added since (a detection between steps) drops the registration
-        match self.registered_positions.as_deref() {
-            Some(moved) if moved.len() == self.positions.len() => ParticleSet {
-                positions_m: moved,
-                floor_information: self.registered_information,
+        match &self.registered {
+            Some(r) if r.positions.len() == self.positions.len() => ParticleSet {
+                positions_m: &r.positions,
+                floor_information: Some(r.information),
                 ..self.set(tables, spread)
             },
             _ => self.set(tables, spread),
@@ -794,9 +798,7 @@ impl Tracker {
                             slice_cursor: 0,
                             disagreement: Disagreement::default(),
                             verified_from: Vec::new(),
-                            registered_information: None,
-                            registered_positions: None,
-                            registered_target: None,
+                            registered: None,
                         });
                         report.tracks_created.push(id);
                         self.states.len() - 1
@@ -983,9 +985,7 @@ mod tests {
             slice_cursor: 0,
             disagreement: Disagreement::default(),
             verified_from: Vec::new(),
-            registered_information: None,
-            registered_positions: None,
-            registered_target: None,
+            registered: None,
         };
         floor_components(&mut s, 0.05);
         let w1: f64 = s.weights[2] + s.weights[3];

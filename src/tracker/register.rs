@@ -18,8 +18,8 @@ use serde::{Deserialize, Serialize};
 /// Parameters of the translation registration.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct RegistrationConfig {
-    /// The registration's information is scaled by this before it weighs the particles (0, the
-    /// default: off). Neighbouring crop pixels share their noise (the sensor's and the crop's
+    /// The registration's information is scaled by this before it updates what the track
+    /// reports (0, the default: off). Neighbouring crop pixels share their noise (the sensor's and the crop's
     /// median downsampling), so the information of `N` inlier pixels read as independent
     /// overstates what they know; 1 takes them as independent.
     pub information_scale: f64,

@@ -391,8 +391,6 @@ fn state_from_column(
         slice_cursor: 0,
         disagreement: Disagreement::default(),
         verified_from: Vec::new(),
-        registered_information: None,
-        registered_positions: None,
-        registered_target: None,
+        registered: None,
     }
 }

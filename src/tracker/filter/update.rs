@@ -119,9 +119,7 @@ impl Tracker {
         let obs_cfg = self.config.observation;
         let matching = self.config.matching;
         // the registration's narrower floor holds for the step that registered only
-        self.states[ti].registered_information = None;
-        self.states[ti].registered_target = None;
-        self.states[ti].registered_positions = None;
+        self.states[ti].registered = None;
         let mean_ref = self.states[ti].set(&tables, self.config.spread).mean_position();
         let reference_from_hist = self.states[ti].reference_from_hist;
         let mean_hist = reference_from_hist
@@ -698,8 +696,11 @@ impl Tracker {
         // crops' spread keeps apart, turned confidently wrong on the tuning set (mugs, bananas)
         let h: Matrix3<f64> = fits.iter().map(|f| f.1).sum();
         let b: Vector3<f64> = fits.iter().map(|f| f.1 * f.0).sum();
-        self.states[ti].registered_target = Some(b);
-        self.states[ti].registered_information = Some(h);
+        self.states[ti].registered = Some(super::Registered {
+            information: h,
+            target: b,
+            positions: Vec::new(),
+        });
         self.move_registered(ti);
         true
     }
@@ -710,8 +711,7 @@ impl Tracker {
     fn move_registered(&mut self, ti: usize) {
         let spread = self.config.spread;
         let s = &mut self.states[ti];
-        let (Some(h), Some(b)) = (s.registered_information, s.registered_target) else {
-            s.registered_positions = None;
+        let Some((h, b)) = s.registered.as_ref().map(|r| (r.information, r.target)) else {
             return;
         };
         let mut moved = s.positions.clone();
@@ -727,7 +727,9 @@ impl Tracker {
                 }
             }
         }
-        s.registered_positions = Some(moved);
+        if let Some(r) = s.registered.as_mut() {
+            r.positions = moved;
+        }
     }
 
     /// Recomputes a track's estimate from its particles.
