@@ -301,12 +301,12 @@ fn near_can(registration: RegistrationConfig) -> (f64, f64, f64, usize) {
 
 #[test]
 fn near_views_place_the_object_by_its_depth() {
-    let on = RegistrationConfig {
-        information_scale: 1.0,
+    let off = RegistrationConfig {
+        information_scale: 0.0,
         ..RegistrationConfig::default()
     };
-    let (err, std, d2, registered) = near_can(on);
-    let (err0, std0, d20, registered0) = near_can(RegistrationConfig::default());
+    let (err, std, d2, registered) = near_can(RegistrationConfig::default());
+    let (err0, std0, d20, registered0) = near_can(off);
     eprintln!(
         "registered: error {err:.4} m, std {std:.4} m, Mahalanobis^2 {d2:.2} ({registered} steps); \
          codes only: {err0:.4} m, std {std0:.4} m, {d20:.2}"

@@ -95,13 +95,6 @@ pub fn calibration_settings(
             }
         }
     }
-    // the same for the depth registration: the shipped map was fitted without it
-    let registration = serde_json::to_value(crate::tracker::RegistrationConfig::default()).unwrap_or_default();
-    if let Some(t) = tracker.as_object_mut()
-        && t.get("registration") == Some(&registration)
-    {
-        t.remove("registration");
-    }
     serde_json::json!({
         "tracker": tracker,
         "codebook": codebook,
@@ -327,7 +320,7 @@ mod tests {
         let mut t5 = t.clone();
         t5.verification.min_view_change_deg = 10.0;
         assert_ne!(h, calibration_settings_hash(&t5, &c, 10, &g));
-        // and so does the registration
+        // and so do the registration's
         let mut t6 = t.clone();
         t6.registration.information_scale = 0.5;
         assert_ne!(h, calibration_settings_hash(&t6, &c, 10, &g));

@@ -324,6 +324,10 @@ pub struct HeadlessDecision {
     pub calibration: String,
     /// The test most samples fail and its share (why `p_success_raw` is not 1).
     pub top_reason: Option<(String, f64)>,
+    /// What drives that test's failures: per axis, `translation gripper_y` and the like, the
+    /// samples' spread along it (metres or radians), the failure's dependence on it (0-1) and
+    /// the axis in the object's frame (a can's axis is its z).
+    pub top_drivers: Vec<(String, f64, f64, [f64; 3])>,
     /// The track's error against the truth at its last step: metres, degrees (modulo the
     /// can's exact symmetries).
     pub truth_error: Option<(f64, f64)>,
@@ -500,6 +504,23 @@ pub fn run_headless(args: &HeadlessArgs) -> anyhow::Result<Vec<LoopOutcome>> {
                             .reasons
                             .first()
                             .map(|r| (format!("{:?}", r.test).to_lowercase(), r.failure_share)),
+                        top_drivers: record.decision.reasons.first().map_or_else(Vec::new, |r| {
+                            r.drivers
+                                .iter()
+                                .map(|a| {
+                                    let motion = match a.motion {
+                                        crate::grasp::Motion::Translation => "translation",
+                                        crate::grasp::Motion::Rotation => "rotation",
+                                    };
+                                    (
+                                        format!("{motion} {}", a.axis),
+                                        a.spread,
+                                        a.failure_dependence,
+                                        a.axis_in_object,
+                                    )
+                                })
+                                .collect()
+                        }),
                         truth_error: track
                             .as_ref()
                             .and_then(|t| t.truth.as_ref())

@@ -19,7 +19,7 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct RegistrationConfig {
     /// The registration's information is scaled by this before it updates what the track
-    /// reports (0, the default: off). Neighbouring crop pixels share their noise (the sensor's and the crop's
+    /// reports (0 turns the registration off; 1, the default). Neighbouring crop pixels share their noise (the sensor's and the crop's
     /// median downsampling), so the information of `N` inlier pixels read as independent
     /// overstates what they know; 1 takes them as independent.
     pub information_scale: f64,
@@ -63,7 +63,7 @@ pub struct RegistrationConfig {
 impl Default for RegistrationConfig {
     fn default() -> Self {
         Self {
-            information_scale: 0.0,
+            information_scale: 1.0,
             min_mode_share: 0.0,
             max_side_px: 64,
             iterations: 3,
