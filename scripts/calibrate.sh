@@ -7,7 +7,7 @@
 # fits the map and chooses the rule on the tuning set, writes src/grasp/calibration_map.json
 # and reports the map on the held-out set.
 #
-#   scripts/calibrate.sh [WORK_DIR]     (default /tmp/pregrasp-calibrate; about 30 min on 2 cores)
+#   scripts/calibrate.sh [WORK_DIR]     (default /tmp/pregrasp-calibrate; about an hour on 2 cores)
 #
 # Then rebuild: the map is compiled into the binary, and the test
 # `eval::calibration::tests::the_shipped_map_is_fitted_for_the_running_settings` passes again.

@@ -406,15 +406,16 @@ pub fn router() -> OpenApiRouter<AppState> {
 /// and 0.95 moves `r` by at most 0.11). `p_success` is the map at `r`: the isotonic fit of the
 /// outcome on the true pose against the smoothed raw rate on generated sequences, linear
 /// between its blocks' (mean raw rate, observed success rate) points. E.g. the shipped map's
-/// blocks at (0.805, 0.924) and (0.866, 0.952) give `p_success` = 0.924 + (r - 0.805) /
-/// (0.866 - 0.805) * (0.952 - 0.924), so 0.94 at r = 0.84. The answer is `grasp` when
+/// blocks at (0.825, 0.931) and (0.885, 0.944) give `p_success` = 0.931 + (r - 0.825) /
+/// (0.885 - 0.825) * (0.944 - 0.931), so 0.937 at r = 0.85. The answer is `grasp` when
 /// `rule.quantity` reaches `rule.threshold` in `rule.run_length` successive answers (answers on
 /// one tracker step count once; `smoothing.run` counts them): with the shipped rule
-/// `calibrated_lower >= 0.88` in 1 answer, `ci95`'s lower end must reach 0.88; it is the
+/// `calibrated_lower >= 0.80` in 2 answers, `ci95`'s lower end must reach 0.80 twice; it is the
 /// smallest of the map at the smoothed raw interval's lower end and the Wilson lower bounds of
-/// the blocks that interval touches, and the block at 0.709 (211 of 235, bound 0.853) reaches up
-/// to 0.805, so a planner gets `grasp` once the smoothed raw interval starts above 0.805 (at an
-/// effective sample size of 110: `r` of 0.879 or more). Of the fitting data's answers
+/// the blocks that interval touches, and every block from a raw rate of 0.752 up has a bound of
+/// at least 0.807 while the one below (0.701-0.752, 93 of 110) has 0.766, so a planner gets
+/// `grasp` once the smoothed raw interval starts above 0.752 (at an effective sample size of
+/// 110: `r` of about 0.834 or more) in two successive answers. Of the fitting data's answers
 /// with a given `p_success`, about that share succeeded on the true pose; `ci95` is the
 /// smoothed raw interval through the map, widened by the map's own uncertainty (its blocks'
 /// Wilson intervals). The map's rule was chosen by its failures: the per-answer and
