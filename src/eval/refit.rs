@@ -24,8 +24,8 @@ pub const MAX_FIRST_GRASP_FAILURES: usize = 0;
 pub const RULE_THRESHOLDS: std::ops::RangeInclusive<u32> = 50..=99;
 /// ... on runs of this many successive answers.
 pub const RULE_RUN_LENGTHS: [u32; 3] = [1, 2, 3];
-/// Folds of the fitting approaches whose out-of-fold answers choose the rule (1: in sample, as
-/// the shipped map was chosen; `--folds 4` is measured next).
+/// Folds of the fitting approaches whose out-of-fold answers choose the rule (1: in sample, how
+/// the shipped map's rule was chosen).
 pub const DEFAULT_FOLDS: usize = 1;
 /// Successive answers must not move by this much (issue 20).
 pub const MAX_JUMP: f64 = 0.3;
@@ -235,18 +235,18 @@ pub fn choose_rule(map: &CalibrationMap, decisions: &[DecisionOutcome]) -> (Opti
 /// Every rule tried on out-of-fold answers, and the one chosen (see [`pick_rule`]): the
 /// approaches are dealt into `folds` folds (round robin in their sorted order); each fold is
 /// answered by a map of the same smoothing fitted on the other folds alone, so that a rule is
-/// judged by answers whose map never saw them. A map's top blocks fitted on the very answers
-/// they judge are optimistic there (a block of 296 successes of 296 claims a lower bound of
-/// 0.987), which is where a rule's failures are decided. `folds` below 2: in sample.
+/// judged by answers whose map never saw them: a map's top blocks are optimistic on the very
+/// answers they were fitted on, and that is where a rule's failures are decided. `map` is the
+/// one fitted on all of `records` (its smoothing is the folds'); `folds` below 2: in sample.
 pub fn choose_rule_cross_fitted(
     records: &DecisionRecords,
-    time_constant_s: f64,
+    map: &CalibrationMap,
     folds: usize,
 ) -> (Option<RuleChoice>, Vec<RuleScore>) {
     if folds < 2 {
-        let map = fit_map(records, time_constant_s, Vec::new(), String::new());
-        return choose_rule(&map, &records.decisions);
+        return choose_rule(map, &records.decisions);
     }
+    let time_constant_s = map.smoothing_time_constant_s;
     let fold_of: BTreeMap<(&str, &str), usize> = approaches(&records.decisions)
         .iter()
         .enumerate()
@@ -529,7 +529,7 @@ pub fn calibrate(args: &Args) -> Result<CalibrateOutput, EvalError> {
         let mut tried: Vec<(CalibrationMap, Vec<RuleScore>)> = Vec::new();
         for &tau in &args.time_constant_s {
             let mut map = fit_map(&records, tau, fitted_on.clone(), at.clone());
-            let (choice, scores) = choose_rule_cross_fitted(&records, tau, args.folds);
+            let (choice, scores) = choose_rule_cross_fitted(&records, &map, args.folds);
             if let Some(c) = &choice {
                 map.rule = c.score.rule;
             }
@@ -805,11 +805,11 @@ mod tests {
         // one fold: the map fitted on all of them, as choose_rule
         let in_sample = fit_map(&records, tau, Vec::new(), String::new());
         assert_eq!(
-            choose_rule_cross_fitted(&records, tau, 1),
+            choose_rule_cross_fitted(&records, &in_sample, 1),
             choose_rule(&in_sample, &records.decisions)
         );
         // four folds: every approach answered once, by a map fitted on the three other folds
-        let (choice, scores) = choose_rule_cross_fitted(&records, tau, 4);
+        let (choice, scores) = choose_rule_cross_fitted(&records, &in_sample, 4);
         assert!(choice.is_some());
         assert!(scores.iter().all(|s| s.approaches == 8), "{:?}", scores[0]);
         let rule = GraspRule {
