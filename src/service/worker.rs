@@ -497,6 +497,13 @@ pub(super) fn step(state: &ServiceState, set: &FusionSet) {
             }
             let m = &state.metrics;
             let us = t0.elapsed().as_micros() as u64;
+            tracing::debug!(
+                views = frames.len(),
+                verified = report.verified,
+                registered = report.registered,
+                step_us = us,
+                "tracker step"
+            );
             m.steps.fetch_add(1, Ordering::Relaxed);
             m.step_latency_us_sum.fetch_add(us, Ordering::Relaxed);
             m.last_step_latency_us.store(us, Ordering::Relaxed);

@@ -305,6 +305,32 @@ struct TrackState {
     verified_from: Vec<(String, Vector3<f64>)>,
     /// This step's depth registration (`None`: not registered).
     registered: Option<Registered>,
+    /// Per camera its newest registration of the track, kept for the steps without one
+    /// (`RegistrationConfig::carry_max_age_s`).
+    carried_fits: Vec<CarriedFit>,
+}
+
+/// One camera's registration of a track, kept across steps: the fitted position and its
+/// information in the reference frame as it is now (moved with the odometry and widened by
+/// the odometry's noise and the drift allowance since it was fitted).
+#[derive(Debug, Clone)]
+struct CarriedFit {
+    camera: String,
+    stamp_ns: i64,
+    target: Vector3<f64>,
+    information: nalgebra::Matrix3<f64>,
+}
+
+impl CarriedFit {
+    /// The fit after adding a noise of covariance `q` to its position: `(H^-1 + Q)^-1`,
+    /// written `H (I + Q H)^-1` so that directions the fit leaves free stay free.
+    fn widen(&mut self, q: &nalgebra::Matrix3<f64>) {
+        let h = self.information;
+        if let Some(inv) = (nalgebra::Matrix3::identity() + q * h).try_inverse() {
+            let w = h * inv;
+            self.information = (w + w.transpose()) * 0.5;
+        }
+    }
 }
 
 /// A step's depth registration of a track (see `Tracker::register_translation`).
@@ -611,6 +637,7 @@ impl Tracker {
             .max()
             .or(odometry.map(|o| o.stamp_ns))
             .unwrap_or(self.stamp_ns);
+        let previous_stamp_ns = self.stamp_ns;
         self.stamp_ns = stamp;
         report.stamp_ns = stamp;
 
@@ -624,8 +651,15 @@ impl Tracker {
             self.world_from_reference = o.world_from_odom * o.odom_from_base * o.base_from_camera;
             self.last_odometry = Some(*o);
         }
+        // kept registrations widen by the drift the object may have had since (not by the
+        // particles' Brownian steps, which keep hypotheses apart more than they model motion)
+        let dt_s = (stamp - previous_stamp_ns).max(0) as f64 * 1e-9;
+        let drift_cov = nalgebra::Matrix3::identity() * (self.config.registration.carry_drift_m_per_s * dt_s).powi(2);
         for s in &mut self.states {
             brownian(&mut s.positions, self.config.brownian_sigma_m, &mut self.rng);
+            for f in &mut s.carried_fits {
+                f.widen(&drift_cov);
+            }
         }
         report.timings.motion_s += t0.elapsed().as_secs_f64();
         let t0 = Instant::now();
@@ -699,6 +733,23 @@ impl Tracker {
                 &mut self.rng,
             );
             s.reference_from_hist = prev_from_cur_exact.inverse() * s.reference_from_hist;
+            // kept registrations move exactly as the world does in the camera, and widen by
+            // the odometry's noise at their position
+            let cur_from_prev = prev_from_cur_exact.inverse();
+            let r = cur_from_prev.rotation.to_rotation_matrix();
+            for f in &mut s.carried_fits {
+                let q = crate::tracker::motion::odometry_covariance_at(
+                    &f.target,
+                    &prev.odom_from_base,
+                    &cur.odom_from_base,
+                    &prev.base_from_camera,
+                    &cur.base_from_camera,
+                    &self.config.odometry_noise,
+                );
+                f.target = cur_from_prev.transform_point(&nalgebra::Point3::from(f.target)).coords;
+                f.information = r.matrix() * f.information * r.matrix().transpose();
+                f.widen(&q);
+            }
         }
     }
 
@@ -762,6 +813,7 @@ impl Tracker {
                         self.states[i].map_cache.clear();
                         self.states[i].disagreement = Disagreement::default();
                         self.states[i].verified_from.clear();
+                        self.states[i].carried_fits.clear();
                         self.tracks[i].status = TrackStatus::Initialising;
                         self.tracks[i].weak_steps = 0;
                         self.tracks[i].reinitialised = Some(Reinitialisation {
@@ -799,6 +851,7 @@ impl Tracker {
                             disagreement: Disagreement::default(),
                             verified_from: Vec::new(),
                             registered: None,
+                            carried_fits: Vec::new(),
                         });
                         report.tracks_created.push(id);
                         self.states.len() - 1
@@ -964,6 +1017,22 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_kept_fit_widens_where_it_is_fixed_and_stays_free_elsewhere() {
+        // fixed to 1 mm along x and 2 mm along y, free along z
+        let mut f = CarriedFit {
+            camera: "a".into(),
+            stamp_ns: 0,
+            target: Vector3::zeros(),
+            information: nalgebra::Matrix3::from_diagonal(&Vector3::new(1e6, 2.5e5, 0.0)),
+        };
+        f.widen(&(nalgebra::Matrix3::identity() * 1e-6));
+        let var = |h: f64| 1.0 / h;
+        assert!((var(f.information[(0, 0)]) - 2e-6).abs() < 1e-12, "{}", f.information);
+        assert!((var(f.information[(1, 1)]) - 5e-6).abs() < 1e-12, "{}", f.information);
+        assert_eq!(f.information[(2, 2)], 0.0);
+    }
+
+    #[test]
     fn tracker_can_move_between_threads() {
         fn assert_send_sync<T: Send + Sync>() {}
         assert_send_sync::<Tracker>();
@@ -986,6 +1055,7 @@ mod tests {
             disagreement: Disagreement::default(),
             verified_from: Vec::new(),
             registered: None,
+            carried_fits: Vec::new(),
         };
         floor_components(&mut s, 0.05);
         let w1: f64 = s.weights[2] + s.weights[3];

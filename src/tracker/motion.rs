@@ -122,6 +122,39 @@ pub fn move_with_odometry(
     }
 }
 
+/// Covariance (current camera frame) of where a point fixed in the world, at `point_prev_m` in
+/// the previous camera frame, lands in the current one under the odometry model's noise:
+/// the spread that [`move_with_odometry`] gives the particles there. A fixed seed keeps it a
+/// deterministic function of the motion, apart from the filter's random stream.
+pub fn odometry_covariance_at(
+    point_prev_m: &Vector3<f64>,
+    odom_from_base_prev: &Pose,
+    odom_from_base_cur: &Pose,
+    base_from_camera_prev: &Pose,
+    base_from_camera_cur: &Pose,
+    noise: &OdometryNoise,
+) -> nalgebra::Matrix3<f64> {
+    use rand::SeedableRng;
+    const DRAWS: usize = 64;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0x0d0e);
+    let mut moved = [*point_prev_m; DRAWS];
+    move_with_odometry(
+        &mut moved,
+        odom_from_base_prev,
+        odom_from_base_cur,
+        base_from_camera_prev,
+        base_from_camera_cur,
+        noise,
+        &mut rng,
+    );
+    let mean = moved.iter().sum::<Vector3<f64>>() / DRAWS as f64;
+    moved
+        .iter()
+        .map(|p| (p - mean) * (p - mean).transpose())
+        .sum::<nalgebra::Matrix3<f64>>()
+        / (DRAWS - 1) as f64
+}
+
 /// Brownian motion: independent Gaussian steps of `sigma_m` per axis.
 pub fn brownian(positions_m: &mut [Vector3<f64>], sigma_m: f64, rng: &mut impl Rng) {
     if sigma_m <= 0.0 {
@@ -206,6 +239,35 @@ mod tests {
             backwards < 1.5 * forwards,
             "backwards {backwards} deg, forwards {forwards} deg"
         );
+    }
+
+    #[test]
+    fn the_odometry_spread_at_a_point_grows_with_the_motion_and_the_range() {
+        let base_from_camera = Pose::from_parts(
+            Translation3::new(0.2, 0.0, 1.0),
+            UnitQuaternion::from_euler_angles(-PI / 2.0, 0.0, -PI / 2.0),
+        );
+        let a = planar(0.0, 0.0, 0.0);
+        let spread = |b: &Pose, z: f64| {
+            odometry_covariance_at(
+                &Vector3::new(0.0, 0.0, z),
+                &a,
+                b,
+                &base_from_camera,
+                &base_from_camera,
+                &OdometryNoise::default(),
+            )
+            .trace()
+            .sqrt()
+        };
+        assert_eq!(spread(&a, 1.0), 0.0, "no motion, no noise");
+        let (short, long) = (
+            spread(&planar(0.05, 0.0, 0.0), 1.0),
+            spread(&planar(0.2, 0.0, 0.0), 1.0),
+        );
+        assert!(short > 0.0 && long > 2.0 * short, "5 cm: {short} m, 20 cm: {long} m");
+        // the heading's noise moves a far point more than a near one
+        assert!(spread(&planar(0.2, 0.0, 0.0), 3.0) > long);
     }
 
     #[test]

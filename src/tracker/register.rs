@@ -58,6 +58,17 @@ pub struct RegistrationConfig {
     /// leave residuals even where the fit is exact; a sigma of a tenth of a millimetre would
     /// turn the slightest normal component into certainty).
     pub min_sigma_per_m: f64,
+    /// A camera's last registration of a track keeps counting at the steps that bring no fit
+    /// from that camera, for at most this long (seconds; 0: a step's own views only). Cameras
+    /// are not synchronised: where each step brings one view, as in the service, a side view
+    /// alone never fixes a can's height nor a top view its position along the ray, and the
+    /// track reported its floor there. The kept fit moves with the robot's odometry and
+    /// widens by its noise and by `carry_drift_m_per_s` (`Tracker` keeps one per camera, the
+    /// newest).
+    pub carry_max_age_s: f64,
+    /// How fast a kept fit widens (metres of standard deviation per second): the drift a
+    /// resting object may have had since, besides the odometry's noise.
+    pub carry_drift_m_per_s: f64,
 }
 
 impl Default for RegistrationConfig {
@@ -74,6 +85,8 @@ impl Default for RegistrationConfig {
             noise_ref_rel: 0.05,
             rotation_pull_scale: 4.0,
             min_sigma_per_m: 0.002,
+            carry_max_age_s: 0.5,
+            carry_drift_m_per_s: 0.01,
         }
     }
 }

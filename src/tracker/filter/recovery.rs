@@ -203,6 +203,7 @@ impl Tracker {
         s.rot.resample(&keep);
         normalise(&mut s.weights);
         s.map_cache.clear();
+        s.carried_fits.clear();
         let track = &mut self.tracks[ti];
         track.reinitialised = Some(Reinitialisation {
             stamp_ns: self.stamp_ns,

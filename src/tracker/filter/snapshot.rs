@@ -392,5 +392,6 @@ fn state_from_column(
         disagreement: Disagreement::default(),
         verified_from: Vec::new(),
         registered: None,
+        carried_fits: Vec::new(),
     }
 }

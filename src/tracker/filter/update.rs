@@ -640,8 +640,9 @@ impl Tracker {
     /// When the registration is on (and the track's top rotation mode holds at least
     /// `RegistrationConfig::min_mode_share` of its modes' mass), registers the object at the track's mean and that mode to the depth
     /// of every view that saw it ([`crate::tracker::register`]) and moves the
-    /// particles by a Kalman update towards the views' registered positions. Returns whether
-    /// it did.
+    /// particles by a Kalman update towards the views' registered positions, counting the
+    /// other cameras' newest fits too while they are young (`carry_max_age_s`). Returns
+    /// whether it did.
     fn register_translation(&mut self, ti: usize, views: &[(&CameraFrame, Pose, usize)], seen_by: &[String]) -> bool {
         let cfg = self.config.registration;
         if cfg.information_scale <= 0.0 {
@@ -668,6 +669,7 @@ impl Tracker {
         let rotation_cov = Matrix3::from_fn(|r, c| est.covariance_6x6[r + 3][c + 3]) + Matrix3::identity() * bin_var;
         // per view: the registered position and its information, both in the reference frame
         let mut fits: Vec<(Vector3<f64>, Matrix3<f64>)> = Vec::new();
+        let mut fresh: Vec<super::CarriedFit> = Vec::new();
         for (frame, view_from_ref, _) in views.iter().filter(|v| seen_by.contains(&v.0.camera)) {
             let pose = view_from_ref * Pose::from_parts(mean_ref, q);
             let Some(reg) = crate::tracker::register::register_translation(
@@ -684,8 +686,30 @@ impl Tracker {
             let r = view_from_ref.rotation.inverse().to_rotation_matrix();
             let target = mean_ref.vector + r * reg.delta_m;
             let info = r.matrix() * reg.information * r.matrix().transpose() * cfg.information_scale;
+            tracing::trace!(
+                camera = %frame.camera,
+                inliers = reg.inliers,
+                noise_rel = reg.noise_rel,
+                std_mm = ?reg.information.symmetric_eigen().eigenvalues.map(|l| 1e3 / l.max(1e-12).sqrt()),
+                "registered"
+            );
             fits.push((target, info));
+            fresh.push(super::CarriedFit {
+                camera: frame.camera.clone(),
+                stamp_ns: self.stamp_ns,
+                target,
+                information: info,
+            });
         }
+        // the other cameras' newest fits, while young enough; this step's replace their own
+        let max_age_ns = (cfg.carry_max_age_s.max(0.0) * 1e9) as i64;
+        let stamp_ns = self.stamp_ns;
+        let kept = &mut self.states[ti].carried_fits;
+        kept.retain(|f| {
+            (0..=max_age_ns).contains(&(stamp_ns - f.stamp_ns)) && !fresh.iter().any(|g| g.camera == f.camera)
+        });
+        fits.extend(kept.iter().map(|f| (f.target, f.information)));
+        kept.extend(fresh);
         if fits.is_empty() {
             return false;
         }
@@ -695,6 +719,11 @@ impl Tracker {
         // narrowed there crops every particle alike, and the rotation histograms, which the
         // crops' spread keeps apart, turned confidently wrong on the tuning set (mugs, bananas)
         let h: Matrix3<f64> = fits.iter().map(|f| f.1).sum();
+        tracing::trace!(
+            fits = fits.len(),
+            std_mm = ?h.symmetric_eigen().eigenvalues.map(|l| 1e3 / l.max(1e-12).sqrt()),
+            "registration combined"
+        );
         let b: Vector3<f64> = fits.iter().map(|f| f.1 * f.0).sum();
         self.states[ti].registered = Some(super::Registered {
             information: h,
