@@ -1,13 +1,13 @@
 #!/usr/bin/env bash
 # Refits the shipped calibration map of p_success and its grasp rule for the present tracker:
-# generates the tuning set (seed 1800, 48 sequences: the rule's failures need that many) and
-# the held-out report set (seed 2000), runs `pregrasp eval --decide` on both with the
+# generates the tuning sets (seeds 1800 and 1900, 48 sequences each: the rule's failures need
+# that many approaches) and the held-out report set (seed 2000), runs `pregrasp eval --decide` on both with the
 # service's settings once its finer codebooks are built (full codebook, 5-degree grid, every
 # frame, each sequence's target),
-# fits the map and chooses the rule on the tuning set, writes src/grasp/calibration_map.json
+# fits the map and chooses the rule on the tuning sets (out of fold), writes src/grasp/calibration_map.json
 # and reports the map on the held-out set.
 #
-#   scripts/calibrate.sh [WORK_DIR]     (default /tmp/pregrasp-calibrate; about an hour on 2 cores)
+#   scripts/calibrate.sh [WORK_DIR]     (default /tmp/pregrasp-calibrate; about 90 minutes on 2 cores)
 #
 # Then rebuild: the map is compiled into the binary, and the test
 # `eval::calibration::tests::the_shipped_map_is_fitted_for_the_running_settings` passes again.
@@ -26,9 +26,11 @@ MODELS="$ROOT/../shared/ycb"
 mkdir -p "$WORK"
 cd "$WORK"
 [[ -d T ]] || "$P" generate --out T --models "$MODELS" --sequences "$TUNING_SEQUENCES" --seed 1800 --targets "$OBJECTS"
+[[ -d T2 ]] || "$P" generate --out T2 --models "$MODELS" --sequences "$TUNING_SEQUENCES" --seed 1900 --targets "$OBJECTS"
 [[ -d R ]] || "$P" generate --out R --models "$MODELS" --sequences "$REPORT_SEQUENCES" --seed 2000 --targets "$OBJECTS"
 EVAL=(eval --cache cache --models "$MODELS" --grid-step-deg 5 --only-target --decide --trust-samples 0 --mode multi)
 "$P" "${EVAL[@]}" --data T --out T-eval --repeat-draw
+"$P" "${EVAL[@]}" --data T2 --out T2-eval --repeat-draw
 "$P" "${EVAL[@]}" --data R --out R-eval
-"$P" calibrate --fit T-eval/decisions.json --report R-eval/decisions.json \
+"$P" calibrate --fit T-eval/decisions.json T2-eval/decisions.json --report R-eval/decisions.json \
   --map "$ROOT/src/grasp/calibration_map.json" --out calibrate.json

@@ -406,20 +406,21 @@ pub fn router() -> OpenApiRouter<AppState> {
 /// and 0.95 moves `r` by at most 0.11). `p_success` is the map at `r`: the isotonic fit of the
 /// outcome on the true pose against the smoothed raw rate on generated sequences, linear
 /// between its blocks' (mean raw rate, observed success rate) points. E.g. the shipped map's
-/// blocks at (0.825, 0.931) and (0.885, 0.944) give `p_success` = 0.931 + (r - 0.825) /
-/// (0.885 - 0.825) * (0.944 - 0.931), so 0.937 at r = 0.85. The answer is `grasp` when
+/// blocks at (0.843, 0.949) and (0.900, 0.952) give `p_success` = 0.949 + (r - 0.843) /
+/// (0.900 - 0.843) * (0.952 - 0.949), so 0.950 at r = 0.87. The answer is `grasp` when
 /// `rule.quantity` reaches `rule.threshold` in `rule.run_length` successive answers (answers on
 /// one tracker step count once; `smoothing.run` counts them): with the shipped rule
-/// `calibrated_lower >= 0.80` in 2 answers, `ci95`'s lower end must reach 0.80 twice; it is the
+/// `calibrated_lower >= 0.81` in 1 answer, `ci95`'s lower end must reach 0.81; it is the
 /// smallest of the map at the smoothed raw interval's lower end and the Wilson lower bounds of
-/// the blocks that interval touches, and every block from a raw rate of 0.752 up has a bound of
-/// at least 0.807 while the one below (0.701-0.752, 93 of 110) has 0.766, so a planner gets
-/// `grasp` once the smoothed raw interval starts above 0.752 (at an effective sample size of
-/// 110: `r` of about 0.834 or more) in two successive answers. Of the fitting data's answers
+/// the blocks that interval touches. The blocks from a raw rate of 0.901 up have bounds of
+/// 0.914-0.981, but a 21-decision block at 0.899-0.900 (20 of 21) has 0.773, so a planner gets
+/// `grasp` once the smoothed raw interval starts above 0.900 (at an effective sample size of
+/// 110: `r` of about 0.957 or more). Of the fitting data's answers
 /// with a given `p_success`, about that share succeeded on the true pose; `ci95` is the
 /// smoothed raw interval through the map, widened by the map's own uncertainty (its blocks'
 /// Wilson intervals). The map's rule was chosen by its failures: the per-answer and
-/// per-approach failure rates on the fitting data, then the recall within 1.2 m.
+/// per-approach failure rates on the fitting approaches' out-of-fold answers (each quarter
+/// answered by a map fitted on the other three), then the recall within 1.2 m.
 ///
 /// **Stale or absent map (`calibration.state` = `stale` / `absent`)**: `p_success` is the raw
 /// rate itself, `ci95` its Wilson interval, nothing is smoothed, and the rule is the one before

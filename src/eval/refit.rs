@@ -17,16 +17,19 @@ use std::sync::Arc;
 /// The rule must keep the share of failing `grasp` answers on the fitting data at or below
 /// this (issue 20's per-frame limit) ...
 pub const MAX_FALSE_GRASP_RATE: f64 = 0.01;
-/// ...and no approach's first `grasp` may fail on the fitting data (issue 20 allows 2 of 64;
-/// a tuning set of 16 approaches cannot tell 2 of 64 from 0).
-pub const MAX_FIRST_GRASP_FAILURES: usize = 0;
+/// ...and at most this many approaches' first `grasp` may fail on the fitting data (issue 20
+/// allows 2 of 64; the tuning sets hold 96). With none allowed, one approach's confident track
+/// error decided the whole rule: two trackers whose raw rates differ in a handful of frames got
+/// rules of recall 0.62 and 0.24 on the same 48 approaches.
+pub const MAX_FIRST_GRASP_FAILURES: usize = 1;
 /// Rules tried: thresholds from 0.50 to 0.99 in steps of 0.01 ...
 pub const RULE_THRESHOLDS: std::ops::RangeInclusive<u32> = 50..=99;
 /// ... on runs of this many successive answers.
 pub const RULE_RUN_LENGTHS: [u32; 3] = [1, 2, 3];
-/// Folds of the fitting approaches whose out-of-fold answers choose the rule (1: in sample, how
-/// the shipped map's rule was chosen).
-pub const DEFAULT_FOLDS: usize = 1;
+/// Folds of the fitting approaches whose out-of-fold answers choose the rule (1: in sample). A
+/// rule judged on answers of the map that was fitted on them is optimistic exactly where it
+/// decides, in the top blocks with few failures; out of fold it faces what the service faces.
+pub const DEFAULT_FOLDS: usize = 4;
 /// Successive answers must not move by this much (issue 20).
 pub const MAX_JUMP: f64 = 0.3;
 
