@@ -139,6 +139,7 @@ fn bench<M: Measurement>(c: &mut BenchmarkGroup<'_, M>) {
                 normal: [0.0, 0.0, 1.0],
                 point_m: [0.0, 0.0, 0.0],
             }),
+            translation_std_m: None,
         };
         let label = format!(
             "decide_1000_samples_{name}_{}tri_{:?}_{}parts",

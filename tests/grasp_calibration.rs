@@ -39,6 +39,7 @@ fn predicted_p_matches_outcomes_on_truth_from_the_same_distribution() {
         threshold: 0.9,
         grasp: Some(grasp),
         support_plane: Some(plane),
+        translation_std_m: None,
     };
     let mut rng = ChaCha8Rng::seed_from_u64(42);
     let mut records = Vec::new();

@@ -73,6 +73,7 @@ fn query(grasp: Option<Grasp>) -> DecisionQuery {
         threshold: 0.9,
         grasp,
         support_plane: Some(table()),
+        translation_std_m: None,
     }
 }
 
@@ -455,6 +456,8 @@ fn test_map(hash: &str) -> pregrasp::grasp::CalibrationMap {
             run_length: 1,
         },
         smoothing_time_constant_s: 0.0,
+        min_block_count: 20,
+        spread_strata: Vec::new(),
     }
 }
 
@@ -485,7 +488,7 @@ fn a_calibrated_answer_carries_the_raw_rate_beside_the_mapped_one() {
     assert_eq!(d.p_success_raw, raw.p_success_raw);
     assert_eq!(d.ci95_raw, raw.ci95_raw);
     let m = cal.map().unwrap();
-    assert!((d.p_success - m.apply(d.p_success_raw)).abs() < 1e-12);
+    assert!((d.p_success - m.apply(d.p_success_raw, None)).abs() < 1e-12);
     assert!(d.ci95[0] <= d.p_success && d.p_success <= d.ci95[1]);
     assert!(d.calibration.is_calibrated() && d.calibration.map_settings_hash() == Some("running"));
     assert_eq!(d.rule.quantity, RuleQuantity::Calibrated);

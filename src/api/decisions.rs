@@ -179,10 +179,14 @@ pub struct CalibrationView {
 pub enum RuleQuantity {
     /// The calibrated `p_success`.
     Calibrated,
-    /// The lower end of `ci95` (calibrated).
+    /// The lower end of `ci95` (calibrated; never chosen by `pregrasp calibrate`, whose folds'
+    /// maps are less certain than the map fitted on all the data).
     CalibratedLower,
     /// The lower end of `ci95_raw`, the raw rate's Wilson interval (the rule without a map).
     RawLower,
+    /// The calibrated probability of the lower end of `ci95_raw`: the map's estimate, cautious
+    /// for the samples drawn.
+    CalibratedAtRawLower,
 }
 
 /// The rule that gave `decision`: `grasp` when `quantity >= threshold` in `run_length`
@@ -192,6 +196,9 @@ pub struct RuleView {
     pub quantity: RuleQuantity,
     pub threshold: f64,
     pub run_length: u32,
+    /// The quantity's value in this answer (`grasp` needs it at or above `threshold` in
+    /// `run_length` successive answers).
+    pub value: f64,
 }
 
 /// How successive answers about the track were smoothed.
@@ -204,6 +211,9 @@ pub struct SmoothingView {
     pub p_success_raw_smoothed: f64,
     /// This answer's own `p_success` before smoothing (calibrated when `calibration` says so).
     pub p_success_unsmoothed: f64,
+    /// The smoothed translation spread of the track (m) that chose the map's stratum (absent:
+    /// the map's pooled fit was read).
+    pub translation_std_m_smoothed: Option<f64>,
     /// Successive answers, this one included, whose quantity reached the threshold.
     pub run: u32,
 }
@@ -224,6 +234,9 @@ pub struct DecisionView {
     pub p_success_raw: f64,
     /// 95 % Wilson interval on `p_success_raw` over the effective sample size.
     pub ci95_raw: [f64; 2],
+    /// The track's translation spread (m, RMS distance of its particles from their mean) at
+    /// this answer: the map is fitted apart for tight and loose tracks.
+    pub translation_std_m: Option<f64>,
     pub calibration: CalibrationView,
     pub rule: RuleView,
     pub smoothing: SmoothingView,
@@ -321,16 +334,18 @@ impl CalibrationView {
     }
 }
 
-impl From<&grasp::GraspRule> for RuleView {
-    fn from(r: &grasp::GraspRule) -> Self {
+impl RuleView {
+    fn new(r: &grasp::GraspRule, value: f64) -> Self {
         Self {
             quantity: match r.quantity {
                 grasp::RuleQuantity::Calibrated => RuleQuantity::Calibrated,
                 grasp::RuleQuantity::CalibratedLower => RuleQuantity::CalibratedLower,
                 grasp::RuleQuantity::RawLower => RuleQuantity::RawLower,
+                grasp::RuleQuantity::CalibratedAtRawLower => RuleQuantity::CalibratedAtRawLower,
             },
             threshold: r.threshold,
             run_length: r.run_length,
+            value,
         }
     }
 }
@@ -343,12 +358,14 @@ impl SmoothingView {
                 time_constant_s: s.time_constant_s,
                 p_success_raw_smoothed: s.p_success_raw_smoothed,
                 p_success_unsmoothed: s.p_success_unsmoothed,
+                translation_std_m_smoothed: s.translation_std_m_smoothed,
                 run: s.run,
             },
             None => Self {
                 time_constant_s: 0.0,
                 p_success_raw_smoothed: d.p_success_raw,
                 p_success_unsmoothed: d.p_success,
+                translation_std_m_smoothed: d.translation_std_m,
                 run: u32::from(d.decision == grasp::Verdict::Grasp),
             },
         }
@@ -368,8 +385,9 @@ impl From<&DecisionRecord> for DecisionView {
             ci95: d.ci95,
             p_success_raw: d.p_success_raw,
             ci95_raw: d.ci95_raw,
+            translation_std_m: d.translation_std_m,
             calibration: CalibrationView::new(&d.calibration, &r.settings_hash),
-            rule: (&d.rule).into(),
+            rule: RuleView::new(&d.rule, d.rule_value),
             smoothing: SmoothingView::new(d),
             n_samples: d.n_samples,
             effective_sample_size: d.effective_sample_size,
@@ -482,6 +500,7 @@ mod tests {
             threshold: calibration.rule().threshold,
             grasp: None,
             support_plane: None,
+            translation_std_m: None,
         };
         let mut d =
             grasp::decide_calibrated(&object, &gripper, &estimate, &samples, &query, calibration).expect("decision");
@@ -519,6 +538,8 @@ mod tests {
                 run_length: 2,
             },
             smoothing_time_constant_s: 1.5,
+            min_block_count: 20,
+            spread_strata: Vec::new(),
         };
         let map = Arc::new(map);
 
@@ -533,7 +554,9 @@ mod tests {
             RuleView {
                 quantity: RuleQuantity::Calibrated,
                 threshold: 0.85,
-                run_length: 2
+                run_length: 2,
+                // the calibrated probability itself
+                value: 0.9,
             }
         );
         assert_eq!((fitted.smoothing.time_constant_s, fitted.smoothing.run), (1.5, 1));

@@ -7,7 +7,7 @@ use super::EvalError;
 use super::calibration::{DecisionOutcome, DecisionRecords, RECALL_MAX_DISTANCE_M, summarise};
 use super::report::DecisionBlock;
 use crate::grasp::calibrated::{
-    AnswerSmoother, Calibration, CalibrationMap, GraspRule, MAP_VERSION, RuleQuantity, fit_isotonic,
+    AnswerSmoother, Calibration, CalibrationMap, GraspRule, MAP_VERSION, RuleQuantity, SpreadStratum, fit_isotonic,
 };
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -30,6 +30,8 @@ pub const RULE_RUN_LENGTHS: [u32; 3] = [1, 2, 3];
 /// rule judged on answers of the map that was fitted on them is optimistic exactly where it
 /// decides, in the top blocks with few failures; out of fold it faces what the service faces.
 pub const DEFAULT_FOLDS: usize = 4;
+/// Translation spreads (m) at which `pregrasp calibrate` splits the map by default.
+pub const DEFAULT_SPREAD_EDGES_M: [f64; 1] = [0.005];
 /// Successive answers must not move by this much (issue 20).
 pub const MAX_JUMP: f64 = 0.3;
 
@@ -86,10 +88,13 @@ pub fn approaches(decisions: &[DecisionOutcome]) -> Vec<Vec<&DecisionOutcome>> {
 
 /// The raw rate and its Wilson interval of a record (the recorded answer when the run had no
 /// features: records of older runs).
-fn raw_of(d: &DecisionOutcome) -> (f64, [f64; 2]) {
+fn raw_of(d: &DecisionOutcome) -> ((f64, [f64; 2]), Option<f64>) {
     match &d.features {
-        Some(f) => (f.p_raw, crate::grasp::wilson_interval(f.p_raw, f.effective_sample_size)),
-        None => (d.p_success, crate::grasp::wilson_interval(d.p_success, 0.0)),
+        Some(f) => (
+            (f.p_raw, crate::grasp::wilson_interval(f.p_raw, f.effective_sample_size)),
+            Some(f.translation_std_m),
+        ),
+        None => ((d.p_success, crate::grasp::wilson_interval(d.p_success, 0.0)), None),
     }
 }
 
@@ -106,8 +111,8 @@ pub fn replay(
     for approach in approaches(decisions) {
         let mut smoother = AnswerSmoother::new(time_constant_s);
         for d in approach {
-            let (p, ci) = raw_of(d);
-            let a = smoother.update(d.stamp_ns, p, ci, calibration, rule);
+            let (raw, spread) = raw_of(d);
+            let a = smoother.update(d.stamp_ns, raw, spread, calibration, rule);
             let mut o = d.clone();
             o.p_success = a.p_success;
             o.grasp = a.grasp;
@@ -117,27 +122,71 @@ pub fn replay(
     out
 }
 
-/// The smoothed raw rate of every decision (per approach, in step order), with its success.
-fn smoothed_points(decisions: &[DecisionOutcome], time_constant_s: f64) -> Vec<(f64, bool)> {
-    replay(
-        decisions,
-        &Calibration::raw("fit"),
-        &GraspRule::default(),
-        time_constant_s,
-    )
-    .iter()
-    .map(|d| (d.p_success, d.success))
-    .collect()
+/// The smoothed raw rate of every decision (per approach, in step order), with its success
+/// and the smoothed translation spread.
+fn smoothed_points(decisions: &[DecisionOutcome], time_constant_s: f64) -> Vec<(f64, bool, Option<f64>)> {
+    let raw = Calibration::raw("fit");
+    let mut out = Vec::with_capacity(decisions.len());
+    for approach in approaches(decisions) {
+        let mut smoother = AnswerSmoother::new(time_constant_s);
+        for d in approach {
+            let (p, spread) = raw_of(d);
+            let a = smoother.update(d.stamp_ns, p, spread, &raw, &GraspRule::default());
+            out.push((a.p_success_raw, d.success, a.translation_std_m));
+        }
+    }
+    out
+}
+
+/// Isotonic fits per translation spread stratum: below `edges_m[0]`, between successive
+/// edges, and at or above the last (none without edges). A stratum without answers takes the
+/// pooled fit `pooled`.
+fn fit_strata(
+    points: &[(f64, bool, Option<f64>)],
+    edges_m: &[f64],
+    min_block_count: usize,
+    pooled: &[crate::grasp::calibrated::IsotonicBlock],
+) -> Vec<SpreadStratum> {
+    if edges_m.is_empty() {
+        return Vec::new();
+    }
+    (0..=edges_m.len())
+        .map(|i| {
+            let lo = if i == 0 { f64::NEG_INFINITY } else { edges_m[i - 1] };
+            let hi = edges_m.get(i).copied();
+            let inside: Vec<(f64, bool)> = points
+                .iter()
+                .filter(|(_, _, s)| s.is_some_and(|s| s >= lo && hi.is_none_or(|h| s < h)))
+                .map(|&(p, y, _)| (p, y))
+                .collect();
+            let blocks = if inside.is_empty() {
+                pooled.to_vec()
+            } else {
+                fit_isotonic(&inside, min_block_count)
+            };
+            SpreadStratum {
+                max_translation_std_m: hi,
+                n_decisions: inside.len(),
+                n_successes: inside.iter().filter(|p| p.1).count(),
+                blocks,
+            }
+        })
+        .collect()
 }
 
 /// The isotonic map of the smoothed raw rate, without its rule yet (see [`choose_rule`]).
 pub fn fit_map(
     records: &DecisionRecords,
     time_constant_s: f64,
+    min_block_count: usize,
+    spread_edges_m: &[f64],
     fitted_on: Vec<String>,
     fitted_at: String,
 ) -> CalibrationMap {
     let points = smoothed_points(&records.decisions, time_constant_s);
+    let pooled: Vec<(f64, bool)> = points.iter().map(|&(p, y, _)| (p, y)).collect();
+    let blocks = fit_isotonic(&pooled, min_block_count);
+    let spread_strata = fit_strata(&points, spread_edges_m, min_block_count, &blocks);
     CalibrationMap {
         version: MAP_VERSION,
         settings_hash: records.settings_hash.clone(),
@@ -147,13 +196,15 @@ pub fn fit_map(
         n_decisions: points.len(),
         n_successes: points.iter().filter(|p| p.1).count(),
         n_approaches: approaches(&records.decisions).len(),
-        blocks: fit_isotonic(&points),
+        blocks,
         rule: GraspRule {
             quantity: RuleQuantity::Calibrated,
             threshold: 0.9,
             run_length: 1,
         },
         smoothing_time_constant_s: time_constant_s,
+        min_block_count,
+        spread_strata,
     }
 }
 
@@ -204,10 +255,13 @@ fn within_first_grasp_limit(failures: usize) -> bool {
     failures.saturating_sub(MAX_FIRST_GRASP_FAILURES) == 0
 }
 
-/// Every rule tried: each quantity, run length and threshold of [`RULE_THRESHOLDS`].
+/// Every rule tried: each quantity, run length and threshold of [`RULE_THRESHOLDS`]. Not the
+/// lower end of the calibrated interval: that end widens with the fit's own uncertainty, which
+/// shrinks with the data the map was fitted on, so a threshold judged on out-of-fold maps
+/// grasps far more or far less often on the map fitted on all the data.
 fn candidate_rules() -> Vec<GraspRule> {
     let mut rules = Vec::new();
-    for quantity in [RuleQuantity::Calibrated, RuleQuantity::CalibratedLower] {
+    for quantity in [RuleQuantity::Calibrated, RuleQuantity::CalibratedAtRawLower] {
         for &run_length in &RULE_RUN_LENGTHS {
             for t in RULE_THRESHOLDS {
                 rules.push(GraspRule {
@@ -266,7 +320,19 @@ pub fn choose_rule_cross_fitted(
                 data: records.data.clone(),
                 decisions: rest,
             };
-            let map = fit_map(&others, time_constant_s, Vec::new(), String::new());
+            let edges: Vec<f64> = map
+                .spread_strata
+                .iter()
+                .filter_map(|s| s.max_translation_std_m)
+                .collect();
+            let map = fit_map(
+                &others,
+                time_constant_s,
+                map.min_block_count,
+                &edges,
+                Vec::new(),
+                String::new(),
+            );
             (held, Calibration::Fitted(Arc::new(map)))
         })
         .filter(|(held, _)| !held.is_empty())
@@ -383,7 +449,7 @@ pub fn repeat_jumps(decisions: &[DecisionOutcome], calibration: &Calibration) ->
         .iter()
         .filter_map(|d| d.features.as_ref().and_then(|f| Some((f.p_raw, f.p_raw_repeat?))))
         .collect();
-    let cal = |p: f64| calibration.calibrate(p, [p, p]).0;
+    let cal = |p: f64| calibration.calibrate(p, [p, p], None).0;
     (
         JumpStats::of(pairs.iter().map(|(a, b)| (a - b).abs()).collect()),
         JumpStats::of(pairs.iter().map(|(a, b)| (cal(*a) - cal(*b)).abs()).collect()),
@@ -456,6 +522,12 @@ pub struct Args {
     /// sample). The map shipped is fitted on all of them either way.
     #[arg(long, default_value_t = DEFAULT_FOLDS)]
     pub folds: usize,
+    /// Blocks of the isotonic fit with fewer decisions are merged into a neighbour.
+    #[arg(long, default_value_t = crate::grasp::calibrated::MIN_BLOCK_COUNT)]
+    pub min_block_count: usize,
+    /// Edges (m) of the translation spread strata fitted apart (none: one fit for all).
+    #[arg(long, num_args = 0.., value_delimiter = ',', default_values_t = DEFAULT_SPREAD_EDGES_M)]
+    pub spread_edges_m: Vec<f64>,
     /// Where to write the whole report as JSON (rules tried, scores per set).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -531,7 +603,14 @@ pub fn calibrate(args: &Args) -> Result<CalibrateOutput, EvalError> {
         let at = now_utc();
         let mut tried: Vec<(CalibrationMap, Vec<RuleScore>)> = Vec::new();
         for &tau in &args.time_constant_s {
-            let mut map = fit_map(&records, tau, fitted_on.clone(), at.clone());
+            let mut map = fit_map(
+                &records,
+                tau,
+                args.min_block_count,
+                &args.spread_edges_m,
+                fitted_on.clone(),
+                at.clone(),
+            );
             let (choice, scores) = choose_rule_cross_fitted(&records, &map, args.folds);
             if let Some(c) = &choice {
                 map.rule = c.score.rule;
@@ -720,6 +799,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 mod tests {
     use super::*;
     use crate::eval::calibration::DecisionFeatures;
+    use crate::grasp::calibrated::MIN_BLOCK_COUNT;
 
     /// One decision of an approach: the raw rate and whether the grasp succeeds on the truth.
     fn rec(seq: &str, frame: u32, p_raw: f64, success: bool, distance_m: f64) -> DecisionOutcome {
@@ -770,7 +850,14 @@ mod tests {
     #[test]
     fn the_rule_chosen_keeps_its_failures_within_the_limits_and_grasps_most() {
         let records = approaches_set(8);
-        let map = fit_map(&records, 0.0, vec!["synthetic".into()], "now".into());
+        let map = fit_map(
+            &records,
+            0.0,
+            MIN_BLOCK_COUNT,
+            &[],
+            vec!["synthetic".into()],
+            "now".into(),
+        );
         let (choice, tried) = choose_rule(&map, &records.decisions);
         let c = choice.expect("a rule");
         assert!(c.meets_limits, "{c:?}");
@@ -806,7 +893,7 @@ mod tests {
         }
         let tau = 0.5;
         // one fold: the map fitted on all of them, as choose_rule
-        let in_sample = fit_map(&records, tau, Vec::new(), String::new());
+        let in_sample = fit_map(&records, tau, MIN_BLOCK_COUNT, &[], Vec::new(), String::new());
         assert_eq!(
             choose_rule_cross_fitted(&records, &in_sample, 1),
             choose_rule(&in_sample, &records.decisions)
@@ -835,7 +922,7 @@ mod tests {
                 decisions: rest.into_iter().map(|(_, d)| d).collect(),
                 ..approaches_set(0)
             };
-            let map = fit_map(&rest, tau, Vec::new(), String::new());
+            let map = fit_map(&rest, tau, MIN_BLOCK_COUNT, &[], Vec::new(), String::new());
             answers.extend(replay(&held, &Calibration::Fitted(Arc::new(map)), &rule, tau));
         }
         let manual = summarise(&answers, rule.threshold).expect("answers");
@@ -899,5 +986,57 @@ mod tests {
         let ab = load_records(&[a.clone(), b]).expect("same settings");
         assert_eq!(ab.decisions.len(), 120);
         assert!(load_records(&[a, c]).is_err());
+    }
+
+    #[test]
+    fn tight_tracks_get_a_map_of_their_own() {
+        // one approach set whose tracks are tight (2 mm) and always succeed above a raw rate
+        // of 0.7, another loose (2 cm) whose raw rates in 0.85..0.9 fail one frame in four
+        let mut records = approaches_set(8);
+        let mut tight = approaches_set(8).decisions;
+        for d in &mut tight {
+            d.sequence = format!("tight-{}", d.sequence);
+            let f = d.features.as_mut().expect("features");
+            f.translation_std_m = 0.002;
+            d.success = f.p_raw > 0.7;
+        }
+        records.decisions.extend(tight);
+        let map = fit_map(&records, 0.0, MIN_BLOCK_COUNT, &[0.005], Vec::new(), String::new());
+        assert_eq!(map.spread_strata.len(), 2);
+        assert_eq!(map.spread_strata[0].max_translation_std_m, Some(0.005));
+        assert_eq!(map.spread_strata[1].max_translation_std_m, None);
+        assert_eq!(map.spread_strata[0].n_decisions, 480);
+        assert_eq!(map.spread_strata[1].n_decisions, 480);
+        // at a raw rate of 0.87 the tight track's stratum says every such answer succeeded,
+        // the loose one's fewer, the pooled fit in between
+        let (tight_p, loose_p, pooled_p) = (
+            map.apply(0.87, Some(0.002)),
+            map.apply(0.87, Some(0.02)),
+            map.apply(0.87, None),
+        );
+        assert!(tight_p > 0.99, "{tight_p}");
+        assert!(
+            loose_p < pooled_p && pooled_p < tight_p,
+            "{loose_p} {pooled_p} {tight_p}"
+        );
+        // the map round-trips through its JSON with the strata
+        let text = serde_json::to_string(&map).expect("json");
+        let back = CalibrationMap::from_json(&text).expect("valid");
+        assert_eq!(back.spread_strata.len(), 2);
+        assert!((back.apply(0.87, Some(0.002)) - tight_p).abs() < 1e-12);
+        // a stratum without answers takes the pooled fit
+        let empty = fit_map(&records, 0.0, MIN_BLOCK_COUNT, &[0.5], Vec::new(), String::new());
+        assert_eq!(empty.spread_strata[1].n_decisions, 0);
+        assert_eq!(empty.spread_strata[1].blocks, empty.blocks);
+    }
+
+    #[test]
+    fn no_rule_is_chosen_on_the_fits_own_uncertainty() {
+        // the calibrated interval's lower end narrows with the data the map saw: a threshold
+        // on it chosen on out-of-fold maps would not hold on the map fitted on all of them
+        let rules = candidate_rules();
+        assert!(rules.iter().all(|r| r.quantity != RuleQuantity::CalibratedLower));
+        assert!(rules.iter().any(|r| r.quantity == RuleQuantity::CalibratedAtRawLower));
+        assert!(rules.iter().any(|r| r.quantity == RuleQuantity::Calibrated));
     }
 }

@@ -583,6 +583,7 @@ fn decide_once(
         threshold: dc.threshold,
         grasp: None,
         support_plane: plane_estimated,
+        translation_std_m: Some(est.translation_std_m),
     };
     let decision = match grasp::decide(object, &dc.gripper, &est.reference_from_object, &samples, &query) {
         Ok(d) => d,

@@ -62,10 +62,16 @@ pub const MAP_VERSION: u32 = 1;
 /// The map shipped with the binary (`pregrasp calibrate --fit` writes it).
 pub const SHIPPED_MAP_JSON: &str = include_str!("calibration_map.json");
 
-/// A pooled block of the isotonic fit smaller than this is merged into its neighbour: a rate
-/// over a handful of frames says little, and a step of the map over it would move answers on
-/// its own.
+/// A pooled block of the isotonic fit smaller than this is merged into its neighbour (the
+/// default of `pregrasp calibrate --min-block-count`): a rate over a handful of frames says
+/// little, a step of the map over it would move answers on its own, and its wide interval
+/// would decide a bound-based rule wherever the raw rate's interval touches it.
 pub const MIN_BLOCK_COUNT: usize = 20;
+
+/// The smallest block of maps written before the size was stored with them.
+fn legacy_min_block_count() -> usize {
+    20
+}
 
 /// One block of the isotonic fit: the decisions whose raw rate lies in `raw_lo..=raw_hi`, of
 /// which `successes` succeeded on the true pose.
@@ -107,6 +113,12 @@ pub enum RuleQuantity {
     /// rule before calibration; used when no valid map is loaded).
     #[default]
     RawLower,
+    /// The calibrated probability of the lower end of the raw rate's 95 % interval: the map's
+    /// estimate, cautious for the few samples an answer drew but not widened by the map's own
+    /// fit, whose width shrinks with the data it was fitted on (so a threshold on
+    /// [`RuleQuantity::CalibratedLower`] chosen with maps fitted on part of the data does not
+    /// carry over to the map fitted on all of it).
+    CalibratedAtRawLower,
 }
 
 /// When an answer is `grasp`: `quantity >= threshold` in `run_length` successive answers about
@@ -131,13 +143,20 @@ impl Default for GraspRule {
 
 impl GraspRule {
     /// Whether one answer clears the threshold (the run is counted by the caller).
-    pub fn admits(&self, p: f64, ci95: [f64; 2], ci95_raw: [f64; 2]) -> bool {
-        let q = match self.quantity {
+    /// The value of the rule's quantity; `p_at_raw_lower` is the calibrated probability of
+    /// `ci95_raw[0]`.
+    pub fn quantity_value(&self, p: f64, ci95: [f64; 2], ci95_raw: [f64; 2], p_at_raw_lower: f64) -> f64 {
+        match self.quantity {
             RuleQuantity::Calibrated => p,
             RuleQuantity::CalibratedLower => ci95[0],
             RuleQuantity::RawLower => ci95_raw[0],
-        };
-        q >= self.threshold
+            RuleQuantity::CalibratedAtRawLower => p_at_raw_lower,
+        }
+    }
+
+    /// Whether the quantity reaches the threshold (see [`GraspRule::quantity_value`]).
+    pub fn admits(&self, p: f64, ci95: [f64; 2], ci95_raw: [f64; 2], p_at_raw_lower: f64) -> bool {
+        self.quantity_value(p, ci95, ci95_raw, p_at_raw_lower) >= self.threshold
     }
 }
 
@@ -164,6 +183,62 @@ pub struct CalibrationMap {
     /// on (0: each answer alone); the service smooths with the same.
     #[serde(default)]
     pub smoothing_time_constant_s: f64,
+    /// The smallest block the fit kept (smaller ones were merged into a neighbour).
+    #[serde(default = "legacy_min_block_count")]
+    pub min_block_count: usize,
+    /// Separate fits by the track's translation spread (empty: `blocks` for every answer).
+    /// The same raw rate means more when the distribution is tight: its few failing samples
+    /// are then the grasp's own margins, not a track that may be centimetres off.
+    #[serde(default)]
+    pub spread_strata: Vec<SpreadStratum>,
+}
+
+/// The isotonic fit of the answers whose track's translation spread lay below
+/// `max_translation_std_m` (and at or above the previous stratum's; `None`: no upper end).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SpreadStratum {
+    pub max_translation_std_m: Option<f64>,
+    pub n_decisions: usize,
+    pub n_successes: usize,
+    /// Isotonic blocks, lowest raw rate first; rates non-decreasing.
+    pub blocks: Vec<IsotonicBlock>,
+}
+
+impl SpreadStratum {
+    fn holds(&self, translation_std_m: f64) -> bool {
+        self.max_translation_std_m.is_none_or(|m| translation_std_m < m)
+    }
+}
+
+/// The map's value at `raw` over `blocks`: linear between the blocks' (mean raw rate, rate)
+/// points, flat beyond the first and last.
+fn apply_blocks(b: &[IsotonicBlock], raw: f64) -> f64 {
+    let raw = if raw.is_finite() { raw.clamp(0.0, 1.0) } else { 0.0 };
+    let i = b.partition_point(|k| k.raw_mean <= raw);
+    if i == 0 {
+        return b[0].rate();
+    }
+    if i == b.len() {
+        return b[b.len() - 1].rate();
+    }
+    let (l, r) = (&b[i - 1], &b[i]);
+    let t = (raw - l.raw_mean) / (r.raw_mean - l.raw_mean);
+    l.rate() + t * (r.rate() - l.rate())
+}
+
+/// Blocks ordered by raw rate with non-decreasing rates.
+fn check_blocks(blocks: &[IsotonicBlock], what: &str) -> Result<(), GraspError> {
+    if blocks.is_empty() {
+        return Err(GraspError::Calibration(format!("{what} has no blocks")));
+    }
+    for w in blocks.windows(2) {
+        if w[1].raw_mean <= w[0].raw_mean || w[1].rate() < w[0].rate() {
+            return Err(GraspError::Calibration(format!(
+                "{what}: blocks are not ordered with non-decreasing rates"
+            )));
+        }
+    }
+    Ok(())
 }
 
 impl CalibrationMap {
@@ -177,13 +252,18 @@ impl CalibrationMap {
                 m.version
             )));
         }
-        if m.blocks.is_empty() {
-            return Err(GraspError::Calibration("map has no blocks".into()));
-        }
-        for w in m.blocks.windows(2) {
-            if w[1].raw_mean <= w[0].raw_mean || w[1].rate() < w[0].rate() {
+        check_blocks(&m.blocks, "map")?;
+        for (i, st) in m.spread_strata.iter().enumerate() {
+            check_blocks(&st.blocks, &format!("spread stratum {i}"))?;
+            let last = i + 1 == m.spread_strata.len();
+            let ordered = match (st.max_translation_std_m, m.spread_strata.get(i + 1)) {
+                (Some(max), Some(next)) => max.is_finite() && next.max_translation_std_m.is_none_or(|n| n > max),
+                (None, _) => last,
+                (Some(max), None) => max.is_finite(),
+            };
+            if !ordered {
                 return Err(GraspError::Calibration(
-                    "map blocks are not ordered with non-decreasing rates".into(),
+                    "spread strata must have increasing upper ends, only the last one open".into(),
                 ));
             }
         }
@@ -210,36 +290,40 @@ impl CalibrationMap {
         Ok(self)
     }
 
-    /// The calibrated probability of a raw rate: linear between the blocks' (mean raw rate,
-    /// rate) points, flat beyond the first and last; non-decreasing in `raw`, and continuous,
-    /// so that a small change of the raw rate never jumps a whole step of the fit.
-    pub fn apply(&self, raw: f64) -> f64 {
-        let raw = if raw.is_finite() { raw.clamp(0.0, 1.0) } else { 0.0 };
-        let b = &self.blocks;
-        let i = b.partition_point(|k| k.raw_mean <= raw);
-        if i == 0 {
-            return b[0].rate();
+    /// The blocks that answer for a track of translation spread `translation_std_m`: its
+    /// stratum's, or the pooled fit's without strata or without a (finite) spread.
+    pub fn blocks_for(&self, translation_std_m: Option<f64>) -> &[IsotonicBlock] {
+        match translation_std_m {
+            Some(s) if s.is_finite() => self
+                .spread_strata
+                .iter()
+                .find(|st| st.holds(s))
+                .map_or(&self.blocks[..], |st| &st.blocks[..]),
+            _ => &self.blocks,
         }
-        if i == b.len() {
-            return b[b.len() - 1].rate();
-        }
-        let (l, r) = (&b[i - 1], &b[i]);
-        let t = (raw - l.raw_mean) / (r.raw_mean - l.raw_mean);
-        l.rate() + t * (r.rate() - l.rate())
+    }
+
+    /// The calibrated probability of a raw rate (for a track of that translation spread):
+    /// linear between the blocks' (mean raw rate, rate) points, flat beyond the first and
+    /// last; non-decreasing in `raw`, and continuous, so that a small change of the raw rate
+    /// never jumps a whole step of the fit.
+    pub fn apply(&self, raw: f64, translation_std_m: Option<f64>) -> f64 {
+        apply_blocks(self.blocks_for(translation_std_m), raw)
     }
 
     /// The calibrated probability's 95 % interval from the raw rate's: the raw interval's ends
     /// through the map (sampling), widened to the Wilson intervals of every block the raw
     /// interval touches (how well the fit knows the map there).
-    pub fn interval(&self, ci95_raw: [f64; 2]) -> [f64; 2] {
+    pub fn interval(&self, ci95_raw: [f64; 2], translation_std_m: Option<f64>) -> [f64; 2] {
         let [lo, hi] = ci95_raw;
-        let mut out = [self.apply(lo), self.apply(hi)];
+        let blocks = self.blocks_for(translation_std_m);
+        let mut out = [apply_blocks(blocks, lo), apply_blocks(blocks, hi)];
         // blocks whose range (extended to the neighbours' means, where the map interpolates)
         // meets [lo, hi]
-        let n = self.blocks.len();
-        for (i, b) in self.blocks.iter().enumerate() {
-            let from = if i == 0 { 0.0 } else { self.blocks[i - 1].raw_mean };
-            let to = if i + 1 == n { 1.0 } else { self.blocks[i + 1].raw_mean };
+        let n = blocks.len();
+        for (i, b) in blocks.iter().enumerate() {
+            let from = if i == 0 { 0.0 } else { blocks[i - 1].raw_mean };
+            let to = if i + 1 == n { 1.0 } else { blocks[i + 1].raw_mean };
             if to < lo || from > hi {
                 continue;
             }
@@ -253,9 +337,9 @@ impl CalibrationMap {
 
 /// Pool-adjacent-violators on (raw rate, success) pairs: the non-decreasing step function of
 /// the raw rate closest to the outcomes in squared error; equal raw rates share a block, and
-/// blocks under [`MIN_BLOCK_COUNT`] are merged into a neighbour (merging neighbours of a
+/// blocks under `min_block_count` are merged into a neighbour (merging neighbours of a
 /// non-decreasing sequence keeps it non-decreasing).
-pub fn fit_isotonic(points: &[(f64, bool)]) -> Vec<IsotonicBlock> {
+pub fn fit_isotonic(points: &[(f64, bool)], min_block_count: usize) -> Vec<IsotonicBlock> {
     let mut pts: Vec<(f64, bool)> = points
         .iter()
         .filter(|(x, _)| x.is_finite())
@@ -306,7 +390,7 @@ pub fn fit_isotonic(points: &[(f64, bool)]) -> Vec<IsotonicBlock> {
     }
     // small blocks join the neighbour whose rate is closer (the last one its left neighbour)
     while stack.len() >= 2 {
-        let Some(i) = stack.iter().position(|b| b.n < MIN_BLOCK_COUNT) else {
+        let Some(i) = stack.iter().position(|b| b.n < min_block_count) else {
             break;
         };
         let left_closer = |i: usize| {
@@ -468,12 +552,23 @@ impl Calibration {
         self.map().map_or_else(GraspRule::default, |m| m.rule)
     }
 
-    /// (p_success, ci95, status) of a raw rate and its interval.
-    pub fn calibrate(&self, raw: f64, ci95_raw: [f64; 2]) -> (f64, [f64; 2], CalibrationStatus) {
+    /// The calibrated probability of a raw rate (the rate itself without a map).
+    pub fn at(&self, raw: f64, translation_std_m: Option<f64>) -> f64 {
+        self.map().map_or(raw, |m| m.apply(raw, translation_std_m))
+    }
+
+    /// (p_success, ci95, status) of a raw rate and its interval, for a track of translation
+    /// spread `translation_std_m` (`None`: the pooled fit).
+    pub fn calibrate(
+        &self,
+        raw: f64,
+        ci95_raw: [f64; 2],
+        translation_std_m: Option<f64>,
+    ) -> (f64, [f64; 2], CalibrationStatus) {
         match self {
             Self::Fitted(m) => (
-                m.apply(raw),
-                m.interval(ci95_raw),
+                m.apply(raw, translation_std_m),
+                m.interval(ci95_raw, translation_std_m),
                 CalibrationStatus::Calibrated {
                     settings_hash: m.settings_hash.clone(),
                 },
@@ -528,6 +623,7 @@ struct Smoothed {
     stamp_ns: i64,
     p_raw: f64,
     ci95_raw: [f64; 2],
+    translation_std_m: Option<f64>,
     run: u32,
 }
 
@@ -541,6 +637,9 @@ pub struct SmoothingStatus {
     pub p_success_raw_smoothed: f64,
     /// This answer's own calibrated probability, before smoothing.
     pub p_success_unsmoothed: f64,
+    /// The smoothed translation spread that chose the map's stratum (`None`: its pooled fit).
+    #[serde(default)]
+    pub translation_std_m_smoothed: Option<f64>,
 }
 
 /// A smoothed answer: the raw rate averaged over recent answers, through the map.
@@ -549,6 +648,10 @@ pub struct SmoothedAnswer {
     /// The smoothed raw rate.
     pub p_success_raw: f64,
     pub ci95_raw: [f64; 2],
+    /// The smoothed translation spread the map read (`None`: its pooled fit).
+    pub translation_std_m: Option<f64>,
+    /// The rule's quantity in this answer.
+    pub rule_value: f64,
     /// The calibrated probability of the smoothed raw rate (the raw rate without a map).
     pub p_success: f64,
     pub ci95: [f64; 2],
@@ -588,8 +691,8 @@ impl AnswerSmoother {
     pub fn apply(&mut self, stamp_ns: i64, decision: &mut super::Decision, calibration: &Calibration) {
         let a = self.update(
             stamp_ns,
-            decision.p_success_raw,
-            decision.ci95_raw,
+            (decision.p_success_raw, decision.ci95_raw),
+            decision.translation_std_m,
             calibration,
             &decision.rule,
         );
@@ -598,9 +701,11 @@ impl AnswerSmoother {
             run: a.run,
             p_success_raw_smoothed: a.p_success_raw,
             p_success_unsmoothed: decision.p_success,
+            translation_std_m_smoothed: a.translation_std_m,
         });
         decision.p_success = a.p_success;
         decision.ci95 = a.ci95;
+        decision.rule_value = a.rule_value;
         decision.decision = if a.grasp {
             super::Verdict::Grasp
         } else {
@@ -608,13 +713,14 @@ impl AnswerSmoother {
         };
     }
 
-    /// Adds one raw answer taken at `stamp_ns` (the tracker step's stamp) and returns the
-    /// smoothed one. An answer older than the last (a restarted clock) starts over.
+    /// Adds one raw answer (rate and interval) taken at `stamp_ns` (the tracker step's stamp)
+    /// on a track of translation spread `translation_std_m` and returns the smoothed one (the
+    /// spread smoothed alike). An answer older than the last (a restarted clock) starts over.
     pub fn update(
         &mut self,
         stamp_ns: i64,
-        p_raw: f64,
-        ci95_raw: [f64; 2],
+        (p_raw, ci95_raw): (f64, [f64; 2]),
+        translation_std_m: Option<f64>,
         calibration: &Calibration,
         rule: &GraspRule,
     ) -> SmoothedAnswer {
@@ -623,7 +729,8 @@ impl AnswerSmoother {
             Some(l) if stamp_ns > l.stamp_ns => self.before = Some(l),
             _ => self.before = None,
         }
-        let (p, ci, run_before) = match self.before {
+        let spread_now = translation_std_m.filter(|s| s.is_finite());
+        let (p, ci, spread, run_before) = match self.before {
             Some(b) if self.time_constant_s > 0.0 => {
                 let dt_s = (stamp_ns - b.stamp_ns) as f64 * 1e-9;
                 let w = 1.0 - (-dt_s / self.time_constant_s).exp();
@@ -633,23 +740,31 @@ impl AnswerSmoother {
                         b.ci95_raw[0] + w * (ci95_raw[0] - b.ci95_raw[0]),
                         b.ci95_raw[1] + w * (ci95_raw[1] - b.ci95_raw[1]),
                     ],
+                    match (b.translation_std_m, spread_now) {
+                        (Some(a), Some(n)) => Some(a + w * (n - a)),
+                        (_, n) => n,
+                    },
                     b.run,
                 )
             }
-            Some(b) => (p_raw, ci95_raw, b.run),
-            None => (p_raw, ci95_raw, 0),
+            Some(b) => (p_raw, ci95_raw, spread_now, b.run),
+            None => (p_raw, ci95_raw, spread_now, 0),
         };
-        let (pc, cic, _) = calibration.calibrate(p, ci);
-        let run = if rule.admits(pc, cic, ci) { run_before + 1 } else { 0 };
+        let (pc, cic, _) = calibration.calibrate(p, ci, spread);
+        let value = rule.quantity_value(pc, cic, ci, calibration.at(ci[0], spread));
+        let run = if value >= rule.threshold { run_before + 1 } else { 0 };
         self.latest = Some(Smoothed {
             stamp_ns,
             p_raw: p,
             ci95_raw: ci,
+            translation_std_m: spread,
             run,
         });
         SmoothedAnswer {
             p_success_raw: p,
             ci95_raw: ci,
+            translation_std_m: spread,
+            rule_value: value,
             p_success: pc,
             ci95: cic,
             run,
@@ -675,6 +790,8 @@ mod tests {
             blocks,
             rule,
             smoothing_time_constant_s: tau_s,
+            min_block_count: 20,
+            spread_strata: Vec::new(),
         }
     }
 
@@ -723,7 +840,7 @@ mod tests {
         for _ in 0..20 {
             pts.extend([(0.1, true), (0.2, false), (0.3, false), (0.4, true)]);
         }
-        let b = fit_isotonic(&pts);
+        let b = fit_isotonic(&pts, MIN_BLOCK_COUNT);
         assert_eq!(b.len(), 2, "{b:?}");
         assert_eq!((b[0].count, b[0].successes), (60, 20));
         assert!((b[0].raw_mean - 0.2).abs() < 1e-12 && b[0].raw_lo == 0.1 && b[0].raw_hi == 0.3);
@@ -735,7 +852,7 @@ mod tests {
                 (x, (i * 104_729 % 997) as f64 / 997.0 < x)
             })
             .collect();
-        let b = fit_isotonic(&noisy);
+        let b = fit_isotonic(&noisy, MIN_BLOCK_COUNT);
         assert!(
             b.windows(2)
                 .all(|w| w[1].rate() >= w[0].rate() && w[1].raw_lo > w[0].raw_hi)
@@ -745,11 +862,77 @@ mod tests {
     }
 
     #[test]
+    fn a_track_reads_the_stratum_of_its_spread() {
+        let block = |mean: f64, count: usize, successes: usize| IsotonicBlock {
+            raw_lo: mean - 0.05,
+            raw_hi: mean + 0.05,
+            raw_mean: mean,
+            count,
+            successes,
+        };
+        let rule = GraspRule {
+            quantity: RuleQuantity::CalibratedAtRawLower,
+            threshold: 0.95,
+            run_length: 1,
+        };
+        let mut m = map_of(vec![block(0.2, 100, 20), block(0.9, 100, 90)], rule, 0.0);
+        m.spread_strata = vec![
+            SpreadStratum {
+                max_translation_std_m: Some(0.005),
+                n_decisions: 200,
+                n_successes: 119,
+                blocks: vec![block(0.2, 100, 20), block(0.9, 100, 99)],
+            },
+            SpreadStratum {
+                max_translation_std_m: None,
+                n_decisions: 200,
+                n_successes: 100,
+                blocks: vec![block(0.2, 100, 20), block(0.9, 100, 80)],
+            },
+        ];
+        assert!((m.apply(0.9, Some(0.003)) - 0.99).abs() < 1e-12);
+        assert!((m.apply(0.9, Some(0.005)) - 0.80).abs() < 1e-12);
+        assert!((m.apply(0.9, Some(0.03)) - 0.80).abs() < 1e-12);
+        // no spread (or none that means anything): the pooled fit
+        assert!((m.apply(0.9, None) - 0.90).abs() < 1e-12);
+        assert!((m.apply(0.9, Some(f64::NAN)) - 0.90).abs() < 1e-12);
+        let text = serde_json::to_string(&m).expect("json");
+        let back = CalibrationMap::from_json(&text).expect("valid");
+        assert!((back.apply(0.9, Some(0.003)) - 0.99).abs() < 1e-12);
+        // strata out of order, or an open one before the last, are refused
+        let mut bad = m.clone();
+        bad.spread_strata.swap(0, 1);
+        let text = serde_json::to_string(&bad).expect("json");
+        assert!(CalibrationMap::from_json(&text).is_err());
+        let mut bad = m.clone();
+        bad.spread_strata[1].max_translation_std_m = Some(0.004);
+        let text = serde_json::to_string(&bad).expect("json");
+        assert!(CalibrationMap::from_json(&text).is_err());
+
+        // the rule on the raw rate's lower end reads that end through the track's stratum
+        let cal = Calibration::Fitted(Arc::new(m));
+        let ci_raw = [0.9, 0.95];
+        let tight = cal.at(ci_raw[0], Some(0.003));
+        let loose = cal.at(ci_raw[0], Some(0.02));
+        assert!(rule.admits(0.0, [0.0, 1.0], ci_raw, tight));
+        assert!(!rule.admits(1.0, [1.0, 1.0], ci_raw, loose));
+        // and the smoother carries the spread along with the rate: 2 mm, then 2 cm one time
+        // constant later
+        let mut s = AnswerSmoother::new(1.0);
+        let a = s.update(0, (0.9, ci_raw), Some(0.002), &cal, &rule);
+        assert!(a.grasp && a.translation_std_m == Some(0.002));
+        let b = s.update(1_000_000_000, (0.9, ci_raw), Some(0.02), &cal, &rule);
+        let expected = 0.002 + (1.0 - (-1.0f64).exp()) * 0.018;
+        assert!((b.translation_std_m.expect("spread") - expected).abs() < 1e-12);
+        assert!(!b.grasp, "{b:?}");
+    }
+
+    #[test]
     fn small_blocks_join_a_neighbour() {
         // 5 points at 0.9 (all succeed) after 100 at 0.5 (half succeed): too few for a block
         let mut pts: Vec<(f64, bool)> = (0..100).map(|i| (0.5, i % 2 == 0)).collect();
         pts.extend((0..5).map(|_| (0.9, true)));
-        let b = fit_isotonic(&pts);
+        let b = fit_isotonic(&pts, MIN_BLOCK_COUNT);
         assert_eq!(b.len(), 1);
         assert_eq!((b[0].count, b[0].successes), (105, 55));
     }
@@ -765,20 +948,20 @@ mod tests {
             calibrated_rule(0.9, 1),
             0.0,
         );
-        assert!((m.apply(0.2) - 0.1).abs() < 1e-12);
-        assert!((m.apply(0.6) - 0.5).abs() < 1e-12);
-        assert!((m.apply(0.9) - 0.95).abs() < 1e-12);
+        assert!((m.apply(0.2, None) - 0.1).abs() < 1e-12);
+        assert!((m.apply(0.6, None) - 0.5).abs() < 1e-12);
+        assert!((m.apply(0.9, None) - 0.95).abs() < 1e-12);
         // flat beyond the outer means, linear between
-        assert_eq!(m.apply(0.0), 0.1);
-        assert_eq!(m.apply(1.0), 0.95);
-        assert!((m.apply(0.4) - 0.3).abs() < 1e-12);
-        let mut last = m.apply(0.0);
+        assert_eq!(m.apply(0.0, None), 0.1);
+        assert_eq!(m.apply(1.0, None), 0.95);
+        assert!((m.apply(0.4, None) - 0.3).abs() < 1e-12);
+        let mut last = m.apply(0.0, None);
         for i in 0..=1000 {
-            let p = m.apply(i as f64 / 1000.0);
+            let p = m.apply(i as f64 / 1000.0, None);
             assert!(p >= last && p - last < 0.01, "{i}: {last} -> {p}");
             last = p;
         }
-        assert_eq!(m.apply(f64::NAN), 0.1);
+        assert_eq!(m.apply(f64::NAN, None), 0.1);
     }
 
     #[test]
@@ -793,17 +976,17 @@ mod tests {
             0.0,
         );
         // a narrow raw interval inside the well-known top block: about its Wilson interval
-        let [lo, hi] = m.interval([0.96, 0.98]);
+        let [lo, hi] = m.interval([0.96, 0.98], None);
         let [wl, wu] = m.blocks[2].interval();
-        assert!(lo <= m.apply(0.96) && hi >= m.apply(0.98));
-        assert!((lo - wl.min(m.apply(0.96))).abs() < 1e-12 && (hi - wu).abs() < 1e-12);
+        assert!(lo <= m.apply(0.96, None) && hi >= m.apply(0.98, None));
+        assert!((lo - wl.min(m.apply(0.96, None))).abs() < 1e-12 && (hi - wu).abs() < 1e-12);
         // a raw interval reaching into the 30-frame block is wider than that block's rate alone
-        let [lo2, _] = m.interval([0.6, 0.98]);
+        let [lo2, _] = m.interval([0.6, 0.98], None);
         assert!(lo2 <= m.blocks[1].interval()[0] && lo2 < 0.7, "{lo2}");
         // always around the calibrated value
         for (a, b) in [(0.1, 0.3), (0.5, 0.99), (0.0, 1.0)] {
-            let [l, h] = m.interval([a, b]);
-            let p = m.apply(0.5 * (a + b));
+            let [l, h] = m.interval([a, b], None);
+            let p = m.apply(0.5 * (a + b), None);
             assert!(l <= p && p <= h, "{a} {b}: {l} {p} {h}");
         }
     }
@@ -816,14 +999,14 @@ mod tests {
         assert!(ok.map().is_some());
         assert_eq!(ok.rule(), calibrated_rule(0.8, 1));
         assert_eq!(ok.smoothing_time_constant_s(), 0.5);
-        let (p, _, status) = ok.calibrate(0.9, [0.85, 0.95]);
+        let (p, _, status) = ok.calibrate(0.9, [0.85, 0.95], None);
         assert_eq!(p, 0.5);
         assert!(status.is_calibrated() && status.warning().is_none());
 
         let stale = Calibration::load(&text, "other");
         assert!(stale.map().is_none());
         assert_eq!(stale.rule(), GraspRule::default());
-        let (p, ci, status) = stale.calibrate(0.9, [0.85, 0.95]);
+        let (p, ci, status) = stale.calibrate(0.9, [0.85, 0.95], None);
         assert_eq!((p, ci), (0.9, [0.85, 0.95]));
         let w = status.warning().expect("a warning");
         assert!(
@@ -843,7 +1026,7 @@ mod tests {
         let broken = Calibration::load("{}", "h");
         assert!(broken.map().is_none());
         assert!(matches!(
-            broken.calibrate(0.5, [0.4, 0.6]).2,
+            broken.calibrate(0.5, [0.4, 0.6], None).2,
             CalibrationStatus::Absent { .. }
         ));
         let mut bad = m.clone();
@@ -871,7 +1054,7 @@ mod tests {
             let mut s = AnswerSmoother::new(tau_s);
             let answers: Vec<f64> = (0..50)
                 .map(|i| {
-                    s.update(i as i64 * 100_000_000, alternating(i), [0.5, 1.0], &raw, &rule)
+                    s.update(i as i64 * 100_000_000, (alternating(i), [0.5, 1.0]), None, &raw, &rule)
                         .p_success
                 })
                 .collect();
@@ -890,7 +1073,13 @@ mod tests {
         let mut last = 0.0;
         for i in 0..100 {
             last = s
-                .update(i * 100_000_000, alternating(i as usize), [0.5, 1.0], &raw, &rule)
+                .update(
+                    i * 100_000_000,
+                    (alternating(i as usize), [0.5, 1.0]),
+                    None,
+                    &raw,
+                    &rule,
+                )
                 .p_success;
         }
         assert!((last - 0.785).abs() < 0.02, "{last}");
@@ -902,12 +1091,14 @@ mod tests {
         let rule = GraspRule::default();
         let mut s = AnswerSmoother::new(0.5);
         for i in 0..10 {
-            s.update(i * 100_000_000, 0.2, [0.1, 0.3], &raw, &rule);
+            s.update(i * 100_000_000, (0.2, [0.1, 0.3]), None, &raw, &rule);
         }
         // the grasp becomes safe at 1 s: after 3 time constants the answer is within 5 %
         let mut p = 0.0;
         for i in 10..25 {
-            p = s.update(i * 100_000_000, 1.0, [0.97, 1.0], &raw, &rule).p_success;
+            p = s
+                .update(i * 100_000_000, (1.0, [0.97, 1.0]), None, &raw, &rule)
+                .p_success;
         }
         assert!(p > 0.2 + 0.95 * 0.8 && p < 1.0, "{p}");
     }
@@ -917,15 +1108,15 @@ mod tests {
         let raw = Calibration::raw("test");
         let rule = GraspRule::default();
         let mut s = AnswerSmoother::new(1.0);
-        s.update(0, 0.2, [0.1, 0.3], &raw, &rule);
-        let a = s.update(100_000_000, 0.9, [0.8, 0.95], &raw, &rule);
+        s.update(0, (0.2, [0.1, 0.3]), None, &raw, &rule);
+        let a = s.update(100_000_000, (0.9, [0.8, 0.95]), None, &raw, &rule);
         // a planner asking ten times within the same step gets the same answer
         for _ in 0..10 {
-            let b = s.update(100_000_000, 0.9, [0.8, 0.95], &raw, &rule);
+            let b = s.update(100_000_000, (0.9, [0.8, 0.95]), None, &raw, &rule);
             assert_eq!(a, b);
         }
         // a clock that went back: the new answer alone
-        let c = s.update(50_000_000, 0.7, [0.6, 0.8], &raw, &rule);
+        let c = s.update(50_000_000, (0.7, [0.6, 0.8]), None, &raw, &rule);
         assert_eq!(c.p_success, 0.7);
     }
 
@@ -943,7 +1134,7 @@ mod tests {
         let grasp: Vec<bool> = raws
             .iter()
             .enumerate()
-            .map(|(i, &p)| s.update(i as i64 * 100_000_000, p, [p, p], &cal, &rule).grasp)
+            .map(|(i, &p)| s.update(i as i64 * 100_000_000, (p, [p, p]), None, &cal, &rule).grasp)
             .collect();
         assert_eq!(grasp, [false, false, false, false, false, true, true]);
     }

@@ -51,6 +51,9 @@ pub struct DecisionQuery {
     pub grasp: Option<Grasp>,
     /// The table, in the frame of the samples.
     pub support_plane: Option<SupportPlane>,
+    /// The track's translation spread (RMS distance of its particles from their mean), which
+    /// a map with spread strata reads; `None`: the map's pooled fit.
+    pub translation_std_m: Option<f64>,
 }
 
 impl Default for DecisionQuery {
@@ -60,6 +63,7 @@ impl Default for DecisionQuery {
             threshold: DEFAULT_THRESHOLD,
             grasp: None,
             support_plane: None,
+            translation_std_m: None,
         }
     }
 }
@@ -172,6 +176,12 @@ pub struct Decision {
     /// The rule that gave `decision` (its threshold is `threshold`).
     #[serde(default)]
     pub rule: GraspRule,
+    /// The track's translation spread the map read (`None`: its pooled fit).
+    #[serde(default)]
+    pub translation_std_m: Option<f64>,
+    /// The value of the rule's quantity that was compared with its threshold.
+    #[serde(default)]
+    pub rule_value: f64,
     /// Set when the answer went through the track's
     /// [`AnswerSmoother`](super::calibrated::AnswerSmoother): `p_success`, `ci95`
     /// and `decision` are then the smoothed ones.
@@ -643,7 +653,8 @@ pub fn decide_calibrated(
 
     let p_raw = share(&eval.outcomes, |o| o.success());
     let ci95_raw = wilson_interval(p_raw, ess);
-    let (p, ci95, status) = calibration.calibrate(p_raw, ci95_raw);
+    let spread = query.translation_std_m.filter(|s| s.is_finite());
+    let (p, ci95, status) = calibration.calibrate(p_raw, ci95_raw, spread);
     let rule = GraspRule {
         threshold: query.threshold,
         ..calibration.rule()
@@ -651,11 +662,12 @@ pub fn decide_calibrated(
     let offsets = offsets_in_gripper(&eval.reference_from_gripper, estimate, poses);
     let frames = (&eval.reference_from_gripper, &grasp.object_from_gripper);
     let reasons = reasons(&eval.outcomes, &offsets, frames);
+    let rule_value = rule.quantity_value(p, ci95, ci95_raw, calibration.at(ci95_raw[0], spread));
     let failed: Vec<bool> = eval.outcomes.iter().map(|o| !o.success()).collect();
     let mut uncertainty = axis_drivers(&failed, &offsets, frames);
     uncertainty.sort_by(|a, b| b.failure_dependence.total_cmp(&a.failure_dependence));
     Ok(Decision {
-        decision: if rule.admits(p, ci95, ci95_raw) && rule.run_length <= 1 {
+        decision: if rule_value >= rule.threshold && rule.run_length <= 1 {
             Verdict::Grasp
         } else {
             Verdict::Observe
@@ -666,6 +678,8 @@ pub fn decide_calibrated(
         ci95_raw,
         calibration: status,
         rule,
+        translation_std_m: spread,
+        rule_value,
         smoothing: None,
         n_samples: n,
         effective_sample_size: ess,

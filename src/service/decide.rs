@@ -70,6 +70,7 @@ impl ServiceState {
                 .object_from_gripper
                 .map(|p| Grasp::from_pose(&object, p, "client")),
             support_plane,
+            translation_std_m: Some(drawn.translation_std_m),
         };
         let mut d = grasp::decide_calibrated(
             &object,
@@ -158,6 +159,8 @@ mod tests {
                 run_length: 2,
             },
             smoothing_time_constant_s: 1.5,
+            min_block_count: 20,
+            spread_strata: Vec::new(),
         }
     }
 
@@ -230,6 +233,7 @@ mod tests {
                 object_id: "can".into(),
                 stamp_ns: generation as i64 * 100_000_000,
                 reference_from_object: estimate,
+                translation_std_m: 0.001,
                 samples: PoseSamples {
                     poses,
                     effective_sample_size: 200.0,
@@ -271,7 +275,7 @@ mod tests {
             assert_eq!(s.time_constant_s, 1.5);
             // the raw rate stays this answer's own; p_success is the map at the smoothed rate
             assert!((r.decision.p_success_raw - alternating(g) as f64 / 200.0).abs() < 1e-12);
-            assert!((r.decision.p_success - map.apply(s.p_success_raw_smoothed)).abs() < 1e-12);
+            assert!((r.decision.p_success - map.apply(s.p_success_raw_smoothed, Some(0.001))).abs() < 1e-12);
             assert_eq!(r.decision.rule.threshold, 0.9, "the map's threshold by default");
             answers.push((r.decision.p_success, s.p_success_unsmoothed));
         }

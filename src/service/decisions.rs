@@ -86,6 +86,8 @@ pub struct Drawn {
     pub object_id: String,
     pub stamp_ns: i64,
     pub reference_from_object: Pose,
+    /// The estimate's translation spread (what the calibration map's strata read).
+    pub translation_std_m: f64,
     pub samples: PoseSamples,
     pub world_from_reference: Pose,
     pub base_from_reference: Option<Pose>,

@@ -284,13 +284,15 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
     // settings, else the raw rate's Wilson lower bound) held for its run of answers
     let rule = &d["rule"];
     assert_eq!(rule["threshold"], 0.8, "{d}");
-    let quantity = match rule["quantity"].as_str().expect("quantity") {
-        "calibrated" => d["p_success"].as_f64(),
-        "calibrated_lower" => d["ci95"][0].as_f64(),
-        "raw_lower" => d["ci95_raw"][0].as_f64(),
+    let quantity = rule["value"].as_f64().expect("the rule's value");
+    match rule["quantity"].as_str().expect("quantity") {
+        "calibrated" => assert_eq!(d["p_success"].as_f64(), Some(quantity), "{d}"),
+        "calibrated_lower" => assert_eq!(d["ci95"][0].as_f64(), Some(quantity), "{d}"),
+        "raw_lower" => assert_eq!(d["ci95_raw"][0].as_f64(), Some(quantity), "{d}"),
+        // the map at the raw interval's lower end: at most the calibrated probability
+        "calibrated_at_raw_lower" => assert!(quantity <= d["p_success"].as_f64().expect("p") + 1e-12, "{d}"),
         other => panic!("rule quantity {other}"),
     }
-    .expect("quantity");
     let run = d["smoothing"]["run"].as_u64().expect("run");
     assert_eq!(run > 0, quantity >= 0.8, "{d}");
     assert_eq!(
