@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Refits the shipped calibration map of p_success and its grasp rule for the present tracker:
 # generates the tuning sets (seeds 1800 and 1900, 48 sequences each: the rule's failures need
-# that many approaches) and the held-out report set (seed 2000), runs `pregrasp eval --decide` on both with the
+# that many approaches) and the held-out report set (seed REPORT_SEED, default 2100; 2000 was
+# read for earlier variants), runs `pregrasp eval --decide` on both with the
 # service's settings once its finer codebooks are built (full codebook, 5-degree grid, every
 # frame, each sequence's target),
 # fits the map and chooses the rule on the tuning sets (out of fold), writes src/grasp/calibration_map.json
@@ -27,10 +28,12 @@ mkdir -p "$WORK"
 cd "$WORK"
 [[ -d T ]] || "$P" generate --out T --models "$MODELS" --sequences "$TUNING_SEQUENCES" --seed 1800 --targets "$OBJECTS"
 [[ -d T2 ]] || "$P" generate --out T2 --models "$MODELS" --sequences "$TUNING_SEQUENCES" --seed 1900 --targets "$OBJECTS"
-[[ -d R ]] || "$P" generate --out R --models "$MODELS" --sequences "$REPORT_SEQUENCES" --seed 2000 --targets "$OBJECTS"
+REPORT_SEED="${REPORT_SEED:-2100}"
+R="R-$REPORT_SEED"
+[[ -d "$R" ]] || "$P" generate --out "$R" --models "$MODELS" --sequences "$REPORT_SEQUENCES" --seed "$REPORT_SEED" --targets "$OBJECTS"
 EVAL=(eval --cache cache --models "$MODELS" --grid-step-deg 5 --only-target --decide --trust-samples 0 --mode multi)
 "$P" "${EVAL[@]}" --data T --out T-eval --repeat-draw
 "$P" "${EVAL[@]}" --data T2 --out T2-eval --repeat-draw
-"$P" "${EVAL[@]}" --data R --out R-eval
-"$P" calibrate --fit T-eval/decisions.json T2-eval/decisions.json --report R-eval/decisions.json \
+"$P" "${EVAL[@]}" --data "$R" --out "$R-eval"
+"$P" calibrate --fit T-eval/decisions.json T2-eval/decisions.json --report "$R-eval/decisions.json" \
   --map "$ROOT/src/grasp/calibration_map.json" --out calibrate.json

@@ -436,7 +436,14 @@ function calibrationLine(d) {
   const c = d.calibration;
   if (!c || !c.state) return "";
   const raw = `raw ${fmt(d.p_success_raw, 2)}`;
-  if (c.state === "calibrated") return `calibrated · ${raw}`;
+  if (c.state === "calibrated") {
+    // the rule's own quantity against its threshold, and the spread that chose the map
+    const r = d.rule;
+    const rule = r && Number.isFinite(r.value) ? ` · rule ${fmt(r.value, 3)} / ${fmt(r.threshold, 2)}` : "";
+    const s = d.smoothing?.translation_std_m_smoothed;
+    const spread = Number.isFinite(s) ? ` · spread ${fmt(s * 1000, 1)} mm` : "";
+    return `calibrated · ${raw}${rule}${spread}`;
+  }
   if (c.state === "stale") return `map fitted for other settings: raw rate and rule · ${raw}`;
   return `no calibration map: raw rate · ${raw}`;
 }

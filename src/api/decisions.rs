@@ -423,17 +423,16 @@ pub fn router() -> OpenApiRouter<AppState> {
 /// the shipped map's 0.5 s and a step every 0.2 s, `w` = 0.33: a raw rate jumping between 0.62
 /// and 0.95 moves `r` by at most 0.11). `p_success` is the map at `r`: the isotonic fit of the
 /// outcome on the true pose against the smoothed raw rate on generated sequences, linear
-/// between its blocks' (mean raw rate, observed success rate) points. E.g. the shipped map's
-/// blocks at (0.843, 0.949) and (0.900, 0.952) give `p_success` = 0.949 + (r - 0.843) /
-/// (0.900 - 0.843) * (0.952 - 0.949), so 0.950 at r = 0.87. The answer is `grasp` when
-/// `rule.quantity` reaches `rule.threshold` in `rule.run_length` successive answers (answers on
-/// one tracker step count once; `smoothing.run` counts them): with the shipped rule
-/// `calibrated_lower >= 0.81` in 1 answer, `ci95`'s lower end must reach 0.81; it is the
-/// smallest of the map at the smoothed raw interval's lower end and the Wilson lower bounds of
-/// the blocks that interval touches. The blocks from a raw rate of 0.901 up have bounds of
-/// 0.914-0.981, but a 21-decision block at 0.899-0.900 (20 of 21) has 0.773, so a planner gets
-/// `grasp` once the smoothed raw interval starts above 0.900 (at an effective sample size of
-/// 110: `r` of about 0.957 or more). Of the fitting data's answers
+/// between its blocks' (mean raw rate, observed success rate) points, fitted apart for tight
+/// tracks (the smoothed translation spread `smoothing.translation_std_m_smoothed` under 5 mm)
+/// and the rest. E.g. a tight track reads the shipped map's blocks (0.034, 0.008) and
+/// (0.949, 0.996): `p_success` = 0.008 + (r - 0.034) / (0.949 - 0.034) * (0.996 - 0.008), so
+/// 0.976 at r = 0.93; a loose one reads (0.962, 0.980) and (0.978, 0.995) near the top. The
+/// answer is `grasp` when `rule.quantity` reaches `rule.threshold` in `rule.run_length`
+/// successive answers (answers on one tracker step count once; `smoothing.run` counts them;
+/// `rule.value` is the quantity's value): with the shipped rule `calibrated >= 0.99` in 1
+/// answer, `p_success` must reach 0.99, at r = 0.943 on a tight track and r = 0.973 on a loose
+/// one. Of the fitting data's answers
 /// with a given `p_success`, about that share succeeded on the true pose; `ci95` is the
 /// smoothed raw interval through the map, widened by the map's own uncertainty (its blocks'
 /// Wilson intervals). The map's rule was chosen by its failures: the per-answer and
