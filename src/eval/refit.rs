@@ -595,6 +595,12 @@ pub struct TimeConstantTried {
 pub fn calibrate(args: &Args) -> Result<CalibrateOutput, EvalError> {
     let mut time_constants = Vec::new();
     let mut rules_tried = Vec::new();
+    let edges = &args.spread_edges_m;
+    if edges.iter().any(|e| !(e.is_finite() && *e > 0.0)) || edges.windows(2).any(|w| w[1] <= w[0]) {
+        return Err(EvalError::Config(format!(
+            "--spread-edges-m must be positive and increasing, got {edges:?}"
+        )));
+    }
     let (map, fit) = if args.fit.is_empty() {
         (read_map(&args.map)?, None)
     } else {
@@ -1028,6 +1034,27 @@ mod tests {
         let empty = fit_map(&records, 0.0, MIN_BLOCK_COUNT, &[0.5], Vec::new(), String::new());
         assert_eq!(empty.spread_strata[1].n_decisions, 0);
         assert_eq!(empty.spread_strata[1].blocks, empty.blocks);
+    }
+
+    #[test]
+    fn spread_edges_out_of_order_are_refused_before_any_fit() {
+        for edges in [vec![0.01, 0.005], vec![0.0], vec![f64::NAN]] {
+            let args = Args {
+                fit: vec![PathBuf::from("/nonexistent/decisions.json")],
+                report: Vec::new(),
+                map: PathBuf::from("/nonexistent/map.json"),
+                time_constant_s: vec![0.5],
+                folds: 1,
+                min_block_count: MIN_BLOCK_COUNT,
+                spread_edges_m: edges.clone(),
+                out: None,
+            };
+            let err = calibrate(&args).expect_err("refused");
+            assert!(
+                matches!(&err, EvalError::Config(m) if m.contains("spread-edges")),
+                "{edges:?}: {err}"
+            );
+        }
     }
 
     #[test]

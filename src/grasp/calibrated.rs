@@ -142,7 +142,6 @@ impl Default for GraspRule {
 }
 
 impl GraspRule {
-    /// Whether one answer clears the threshold (the run is counted by the caller).
     /// The value of the rule's quantity; `p_at_raw_lower` is the calibrated probability of
     /// `ci95_raw[0]`.
     pub fn quantity_value(&self, p: f64, ci95: [f64; 2], ci95_raw: [f64; 2], p_at_raw_lower: f64) -> f64 {
@@ -154,7 +153,8 @@ impl GraspRule {
         }
     }
 
-    /// Whether the quantity reaches the threshold (see [`GraspRule::quantity_value`]).
+    /// Whether one answer's quantity reaches the threshold (see [`GraspRule::quantity_value`];
+    /// the run is counted by the caller).
     pub fn admits(&self, p: f64, ci95: [f64; 2], ci95_raw: [f64; 2], p_at_raw_lower: f64) -> bool {
         self.quantity_value(p, ci95, ci95_raw, p_at_raw_lower) >= self.threshold
     }
