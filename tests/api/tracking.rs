@@ -310,6 +310,19 @@ async fn replayed_scene_is_tracked_decided_and_survives_restart() {
         assert_eq!(d["p_success"], d["p_success_raw"], "{d}");
         assert!(d["calibration"]["message"].is_string(), "{d}");
     }
+    // The track's translation spread, which picks the map's stratum, comes with the answer and
+    // agrees with the track's own; unsmoothed it is the one the map read.
+    let spread = d["translation_std_m"].as_f64().expect("translation_std_m");
+    let track = app.get_json(&format!("/tracks/{id}")).await;
+    assert!(spread > 0.0 && spread < 0.5, "{d}");
+    if d["smoothing"]["time_constant_s"] == 0.0 {
+        assert_eq!(
+            d["smoothing"]["translation_std_m_smoothed"].as_f64(),
+            Some(spread),
+            "{d}"
+        );
+    }
+    assert!(track["translation_std_m"].is_number(), "{track}");
     // The gripper is placed on the estimate: within the object's reach of the truth.
     let wfg = pose_from_json(&d["world_from_gripper"]);
     assert!((wfg.translation.vector - scene.world_from_object.translation.vector).norm() < 0.3);
