@@ -7,7 +7,8 @@ use super::EvalError;
 use super::calibration::{DecisionOutcome, DecisionRecords, RECALL_MAX_DISTANCE_M, summarise};
 use super::report::DecisionBlock;
 use crate::grasp::calibrated::{
-    AnswerSmoother, Calibration, CalibrationMap, GraspRule, MAP_VERSION, RuleQuantity, SpreadStratum, fit_isotonic,
+    AnswerSmoother, Calibration, CalibrationMap, GraspRule, MAP_VERSION, RuleQuantity, SmoothedAnswer, SpreadStratum,
+    fit_isotonic,
 };
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -107,16 +108,31 @@ pub fn replay(
     rule: &GraspRule,
     time_constant_s: f64,
 ) -> Vec<DecisionOutcome> {
+    smoothed(decisions, calibration, rule, time_constant_s)
+        .into_iter()
+        .map(|(d, a)| {
+            let mut o = d.clone();
+            o.p_success = a.p_success;
+            o.grasp = a.grasp;
+            o
+        })
+        .collect()
+}
+
+/// Every decision with the service's smoothed answer to it: per approach one smoother of
+/// `time_constant_s`, in step order.
+fn smoothed<'a>(
+    decisions: &'a [DecisionOutcome],
+    calibration: &Calibration,
+    rule: &GraspRule,
+    time_constant_s: f64,
+) -> Vec<(&'a DecisionOutcome, SmoothedAnswer)> {
     let mut out = Vec::with_capacity(decisions.len());
     for approach in approaches(decisions) {
         let mut smoother = AnswerSmoother::new(time_constant_s);
         for d in approach {
             let (raw, spread) = raw_of(d);
-            let a = smoother.update(d.stamp_ns, raw, spread, calibration, rule);
-            let mut o = d.clone();
-            o.p_success = a.p_success;
-            o.grasp = a.grasp;
-            out.push(o);
+            out.push((d, smoother.update(d.stamp_ns, raw, spread, calibration, rule)));
         }
     }
     out
@@ -125,22 +141,21 @@ pub fn replay(
 /// The smoothed raw rate of every decision (per approach, in step order), with its success
 /// and the smoothed translation spread.
 fn smoothed_points(decisions: &[DecisionOutcome], time_constant_s: f64) -> Vec<(f64, bool, Option<f64>)> {
-    let raw = Calibration::raw("fit");
-    let mut out = Vec::with_capacity(decisions.len());
-    for approach in approaches(decisions) {
-        let mut smoother = AnswerSmoother::new(time_constant_s);
-        for d in approach {
-            let (p, spread) = raw_of(d);
-            let a = smoother.update(d.stamp_ns, p, spread, &raw, &GraspRule::default());
-            out.push((a.p_success_raw, d.success, a.translation_std_m));
-        }
-    }
-    out
+    smoothed(
+        decisions,
+        &Calibration::raw("fit"),
+        &GraspRule::default(),
+        time_constant_s,
+    )
+    .into_iter()
+    .map(|(d, a)| (a.p_success_raw, d.success, a.translation_std_m))
+    .collect()
 }
 
 /// Isotonic fits per translation spread stratum: below `edges_m[0]`, between successive
-/// edges, and at or above the last (none without edges). A stratum without answers takes the
-/// pooled fit `pooled`.
+/// edges, and at or above the last (none without edges). Answers are dealt to strata by the
+/// rule the map reads them with ([`CalibrationMap::stratum_of`]); a stratum without answers
+/// takes the pooled fit `pooled`.
 fn fit_strata(
     points: &[(f64, bool, Option<f64>)],
     edges_m: &[f64],
@@ -150,28 +165,30 @@ fn fit_strata(
     if edges_m.is_empty() {
         return Vec::new();
     }
-    (0..=edges_m.len())
-        .map(|i| {
-            let lo = if i == 0 { f64::NEG_INFINITY } else { edges_m[i - 1] };
-            let hi = edges_m.get(i).copied();
-            let inside: Vec<(f64, bool)> = points
-                .iter()
-                .filter(|(_, _, s)| s.is_some_and(|s| s >= lo && hi.is_none_or(|h| s < h)))
-                .map(|&(p, y, _)| (p, y))
-                .collect();
-            let blocks = if inside.is_empty() {
-                pooled.to_vec()
-            } else {
-                fit_isotonic(&inside, min_block_count)
-            };
-            SpreadStratum {
-                max_translation_std_m: hi,
-                n_decisions: inside.len(),
-                n_successes: inside.iter().filter(|p| p.1).count(),
-                blocks,
-            }
+    let mut strata: Vec<SpreadStratum> = (0..=edges_m.len())
+        .map(|i| SpreadStratum {
+            max_translation_std_m: edges_m.get(i).copied(),
+            n_decisions: 0,
+            n_successes: 0,
+            blocks: Vec::new(),
         })
-        .collect()
+        .collect();
+    let mut inside: Vec<Vec<(f64, bool)>> = vec![Vec::new(); strata.len()];
+    for &(p, y, s) in points {
+        if let Some(i) = CalibrationMap::stratum_of(&strata, s) {
+            inside[i].push((p, y));
+        }
+    }
+    for (st, pts) in strata.iter_mut().zip(inside) {
+        st.n_decisions = pts.len();
+        st.n_successes = pts.iter().filter(|p| p.1).count();
+        st.blocks = if pts.is_empty() {
+            pooled.to_vec()
+        } else {
+            fit_isotonic(&pts, min_block_count)
+        };
+    }
+    strata
 }
 
 /// The isotonic map of the smoothed raw rate, without its rule yet (see [`choose_rule`]).
@@ -320,16 +337,11 @@ pub fn choose_rule_cross_fitted(
                 data: records.data.clone(),
                 decisions: rest,
             };
-            let edges: Vec<f64> = map
-                .spread_strata
-                .iter()
-                .filter_map(|s| s.max_translation_std_m)
-                .collect();
             let map = fit_map(
                 &others,
                 time_constant_s,
                 map.min_block_count,
-                &edges,
+                &map.spread_edges_m(),
                 Vec::new(),
                 String::new(),
             );

@@ -70,7 +70,7 @@ pub const MIN_BLOCK_COUNT: usize = 20;
 
 /// The smallest block of maps written before the size was stored with them.
 fn legacy_min_block_count() -> usize {
-    20
+    MIN_BLOCK_COUNT
 }
 
 /// One block of the isotonic fit: the decisions whose raw rate lies in `raw_lo..=raw_hi`, of
@@ -142,20 +142,26 @@ impl Default for GraspRule {
 }
 
 impl GraspRule {
-    /// The value of the rule's quantity; `p_at_raw_lower` is the calibrated probability of
-    /// `ci95_raw[0]`.
-    pub fn quantity_value(&self, p: f64, ci95: [f64; 2], ci95_raw: [f64; 2], p_at_raw_lower: f64) -> f64 {
+    /// The value of the rule's quantity; `p_at_raw_lower` gives the calibrated probability of
+    /// `ci95_raw[0]` (read only by [`RuleQuantity::CalibratedAtRawLower`]).
+    pub fn quantity_value(
+        &self,
+        p: f64,
+        ci95: [f64; 2],
+        ci95_raw: [f64; 2],
+        p_at_raw_lower: impl FnOnce() -> f64,
+    ) -> f64 {
         match self.quantity {
             RuleQuantity::Calibrated => p,
             RuleQuantity::CalibratedLower => ci95[0],
             RuleQuantity::RawLower => ci95_raw[0],
-            RuleQuantity::CalibratedAtRawLower => p_at_raw_lower,
+            RuleQuantity::CalibratedAtRawLower => p_at_raw_lower(),
         }
     }
 
     /// Whether one answer's quantity reaches the threshold (see [`GraspRule::quantity_value`];
     /// the run is counted by the caller).
-    pub fn admits(&self, p: f64, ci95: [f64; 2], ci95_raw: [f64; 2], p_at_raw_lower: f64) -> bool {
+    pub fn admits(&self, p: f64, ci95: [f64; 2], ci95_raw: [f64; 2], p_at_raw_lower: impl FnOnce() -> f64) -> bool {
         self.quantity_value(p, ci95, ci95_raw, p_at_raw_lower) >= self.threshold
     }
 }
@@ -202,12 +208,6 @@ pub struct SpreadStratum {
     pub n_successes: usize,
     /// Isotonic blocks, lowest raw rate first; rates non-decreasing.
     pub blocks: Vec<IsotonicBlock>,
-}
-
-impl SpreadStratum {
-    fn holds(&self, translation_std_m: f64) -> bool {
-        self.max_translation_std_m.is_none_or(|m| translation_std_m < m)
-    }
 }
 
 /// The map's value at `raw` over `blocks`: linear between the blocks' (mean raw rate, rate)
@@ -293,14 +293,26 @@ impl CalibrationMap {
     /// The blocks that answer for a track of translation spread `translation_std_m`: its
     /// stratum's, or the pooled fit's without strata or without a (finite) spread.
     pub fn blocks_for(&self, translation_std_m: Option<f64>) -> &[IsotonicBlock] {
-        match translation_std_m {
-            Some(s) if s.is_finite() => self
-                .spread_strata
-                .iter()
-                .find(|st| st.holds(s))
-                .map_or(&self.blocks[..], |st| &st.blocks[..]),
-            _ => &self.blocks,
-        }
+        Self::stratum_of(&self.spread_strata, translation_std_m)
+            .map_or(&self.blocks[..], |i| &self.spread_strata[i].blocks[..])
+    }
+
+    /// The stratum among `strata` (ordered by upper end) that a track of translation spread
+    /// `translation_std_m` belongs to: the first whose upper end lies above it; `None` without
+    /// a finite spread or beyond the last closed stratum.
+    pub fn stratum_of(strata: &[SpreadStratum], translation_std_m: Option<f64>) -> Option<usize> {
+        let s = translation_std_m.filter(|s| s.is_finite())?;
+        strata
+            .iter()
+            .position(|st| st.max_translation_std_m.is_none_or(|m| s < m))
+    }
+
+    /// The upper ends of the closed spread strata (what `calibrate --spread-edges-m` took).
+    pub fn spread_edges_m(&self) -> Vec<f64> {
+        self.spread_strata
+            .iter()
+            .filter_map(|s| s.max_translation_std_m)
+            .collect()
     }
 
     /// The calibrated probability of a raw rate (for a track of that translation spread):
@@ -557,6 +569,18 @@ impl Calibration {
         self.map().map_or(raw, |m| m.apply(raw, translation_std_m))
     }
 
+    /// The value of `rule`'s quantity for an answer calibrated to `p`, `ci95` from the raw
+    /// interval `ci95_raw` of a track of translation spread `translation_std_m`.
+    pub fn rule_value(
+        &self,
+        rule: &GraspRule,
+        (p, ci95): (f64, [f64; 2]),
+        ci95_raw: [f64; 2],
+        translation_std_m: Option<f64>,
+    ) -> f64 {
+        rule.quantity_value(p, ci95, ci95_raw, || self.at(ci95_raw[0], translation_std_m))
+    }
+
     /// (p_success, ci95, status) of a raw rate and its interval, for a track of translation
     /// spread `translation_std_m` (`None`: the pooled fit).
     pub fn calibrate(
@@ -751,7 +775,7 @@ impl AnswerSmoother {
             None => (p_raw, ci95_raw, spread_now, 0),
         };
         let (pc, cic, _) = calibration.calibrate(p, ci, spread);
-        let value = rule.quantity_value(pc, cic, ci, calibration.at(ci[0], spread));
+        let value = calibration.rule_value(rule, (pc, cic), ci, spread);
         let run = if value >= rule.threshold { run_before + 1 } else { 0 };
         self.latest = Some(Smoothed {
             stamp_ns,
@@ -914,8 +938,9 @@ mod tests {
         let ci_raw = [0.9, 0.95];
         let tight = cal.at(ci_raw[0], Some(0.003));
         let loose = cal.at(ci_raw[0], Some(0.02));
-        assert!(rule.admits(0.0, [0.0, 1.0], ci_raw, tight));
-        assert!(!rule.admits(1.0, [1.0, 1.0], ci_raw, loose));
+        assert!(rule.admits(0.0, [0.0, 1.0], ci_raw, || tight));
+        assert!(!rule.admits(1.0, [1.0, 1.0], ci_raw, || loose));
+        assert_eq!(cal.rule_value(&rule, (0.0, [0.0, 1.0]), ci_raw, Some(0.003)), tight);
         // and the smoother carries the spread along with the rate: 2 mm, then 2 cm one time
         // constant later
         let mut s = AnswerSmoother::new(1.0);
