@@ -144,6 +144,19 @@ async fn metrics(State(state): State<AppState>) -> impl IntoResponse {
         s,
         "# HELP pregrasp_step_seconds_total Time spent in tracker steps\n# TYPE pregrasp_step_seconds_total counter\npregrasp_step_seconds_total {seconds_total}"
     );
+    let stages = m.stage_seconds.lock().unwrap_or_else(|p| p.into_inner()).clone();
+    let _ = writeln!(
+        s,
+        "# HELP pregrasp_step_stage_seconds_total Time spent per stage of the tracker's steps\n# TYPE pregrasp_step_stage_seconds_total counter"
+    );
+    for (stage, seconds) in stages.stages() {
+        let _ = writeln!(s, "pregrasp_step_stage_seconds_total{{stage=\"{stage}\"}} {seconds}");
+    }
+    let after_s = m.after_step_us_sum.load(Ordering::Relaxed) as f64 * 1e-6;
+    let _ = writeln!(
+        s,
+        "# HELP pregrasp_after_step_seconds_total Time the worker held the tracker after its steps (views, decision samples)\n# TYPE pregrasp_after_step_seconds_total counter\npregrasp_after_step_seconds_total {after_s}"
+    );
     let stats = state.stats.lock().unwrap_or_else(|p| p.into_inner()).clone();
     let gauges: [(&str, &str, f64); 6] = [
         (

@@ -149,6 +149,10 @@ pub struct Metrics {
     pub codebook_builds_cancelled: AtomicU64,
     /// Ingest-to-estimate latencies of the most recent frames, microseconds.
     pub ingest_to_estimate_us: Mutex<LatencyRing>,
+    /// The tracker's stage timings summed over all steps.
+    pub stage_seconds: Mutex<crate::tracker::StageTimings>,
+    /// Time the worker held the tracker after its steps (views and decision sample banks), us.
+    pub after_step_us_sum: AtomicU64,
 }
 
 /// The last [`LatencyRing::CAPACITY`] latencies (bounded), for quantiles.

@@ -508,6 +508,10 @@ pub(super) fn step(state: &ServiceState, set: &FusionSet) {
             m.steps.fetch_add(1, Ordering::Relaxed);
             m.step_latency_us_sum.fetch_add(us, Ordering::Relaxed);
             m.last_step_latency_us.store(us, Ordering::Relaxed);
+            m.stage_seconds
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .accumulate(&report.timings);
         }
         Err(e) => {
             state.metrics.step_errors.fetch_add(1, Ordering::Relaxed);
@@ -518,8 +522,13 @@ pub(super) fn step(state: &ServiceState, set: &FusionSet) {
     let stopped: HashSet<u64> = state.tracking.board().stopped.iter().copied().collect();
     let newest_received = set.frames.iter().map(|f| f.received).max();
     let latency_ms = newest_received.map(|r| r.elapsed().as_secs_f64() * 1e3);
+    let t_after = Instant::now();
     let views = views(state, engine, latency_ms, &stopped, None);
     refill_sample_banks(state, engine, &stopped);
+    state
+        .metrics
+        .after_step_us_sum
+        .fetch_add(t_after.elapsed().as_micros() as u64, Ordering::Relaxed);
     {
         let mut ring = state
             .metrics

@@ -241,3 +241,39 @@ pub struct StageTimings {
     pub registration_s: f64,
     pub total_s: f64,
 }
+
+impl StageTimings {
+    /// The stages by name (the total last), for tables and metrics.
+    pub fn stages(&self) -> [(&'static str, f64); 12] {
+        [
+            ("motion", self.motion_s),
+            ("crops", self.crops_s),
+            ("encoding", self.encoding_s),
+            ("matching", self.matching_s),
+            ("likelihoods", self.likelihoods_s),
+            ("fusion", self.fusion_s),
+            ("blur", self.blur_s),
+            ("resampling", self.resampling_s),
+            ("estimates", self.estimates_s),
+            ("verification", self.verification_s),
+            ("registration", self.registration_s),
+            ("total", self.total_s),
+        ]
+    }
+
+    /// Adds another step's timings to these (a running sum).
+    pub fn accumulate(&mut self, other: &StageTimings) {
+        self.motion_s += other.motion_s;
+        self.crops_s += other.crops_s;
+        self.encoding_s += other.encoding_s;
+        self.matching_s += other.matching_s;
+        self.likelihoods_s += other.likelihoods_s;
+        self.fusion_s += other.fusion_s;
+        self.blur_s += other.blur_s;
+        self.resampling_s += other.resampling_s;
+        self.estimates_s += other.estimates_s;
+        self.verification_s += other.verification_s;
+        self.registration_s += other.registration_s;
+        self.total_s += other.total_s;
+    }
+}
