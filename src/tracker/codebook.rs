@@ -230,6 +230,27 @@ impl Codes {
         self.values[b * self.dim..(b + 1) * self.dim].convert_to_f32_slice(out);
     }
 
+    /// Rows `rows` into `out` (`rows.len() * dim` values, row after row): the gather of the
+    /// matching, with one feature check for all rows and AVX-512's 16-lane conversion where the
+    /// CPU has it (the conversion is exact: the same values as [`Codes::row_into`]).
+    pub fn rows_into(&self, rows: &[u32], out: &mut [f32]) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx512f") {
+            use half::slice::HalfFloatSliceExt;
+            let bits: &[u16] = self.values.reinterpret_cast();
+            // SAFETY: AVX-512F is present (checked above); the function reads and writes only
+            // through bounds-checked slices.
+            #[allow(unsafe_code)] // see Cargo.toml's lints
+            unsafe {
+                rows_into_avx512(bits, self.dim, rows, out);
+            }
+            return;
+        }
+        for (dst, r) in out.chunks_mut(self.dim).zip(rows) {
+            self.row_into(*r as usize, dst);
+        }
+    }
+
     /// Every row, row-major f32.
     pub fn to_f32(&self) -> Vec<f32> {
         use half::slice::HalfFloatSliceExt;
@@ -239,6 +260,30 @@ impl Codes {
     /// Bytes held.
     pub fn bytes(&self) -> usize {
         self.values.len() * 2
+    }
+}
+
+/// [`Codes::rows_into`] on AVX-512: 16 half floats to f32 per instruction.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+fn rows_into_avx512(bits: &[u16], dim: usize, rows: &[u32], out: &mut [f32]) {
+    use std::arch::x86_64::{__m256i, _mm256_loadu_si256, _mm512_cvtph_ps, _mm512_storeu_ps};
+    for (dst, r) in out.chunks_mut(dim).zip(rows) {
+        let src = &bits[*r as usize * dim..(*r as usize + 1) * dim];
+        let mut s16 = src.chunks_exact(16);
+        let mut d16 = dst.chunks_exact_mut(16);
+        for (s, d) in (&mut s16).zip(&mut d16) {
+            // SAFETY: `s` holds 16 u16 (32 bytes) and `d` 16 f32 (64 bytes): both unaligned
+            // accesses stay inside their slices.
+            #[allow(unsafe_code)] // see Cargo.toml's lints
+            unsafe {
+                let h = _mm256_loadu_si256(s.as_ptr().cast::<__m256i>());
+                _mm512_storeu_ps(d.as_mut_ptr(), _mm512_cvtph_ps(h));
+            }
+        }
+        for (s, d) in s16.remainder().iter().zip(d16.into_remainder()) {
+            *d = half::f16::from_bits(*s).to_f32();
+        }
     }
 }
 
@@ -931,4 +976,36 @@ pub fn viewpoint_pose(grid: &RotationGrid, viewpoint: usize, distance_m: f64) ->
         Translation3::new(0.0, 0.0, distance_m),
         grid.viewpoint_rotation(viewpoint) * UnitQuaternion::identity(),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gathered_rows_are_the_rows_one_by_one() {
+        // every half float that is not a NaN, in rows of widths with and without a remainder
+        let all: Vec<half::f16> = (0..=u16::MAX)
+            .map(half::f16::from_bits)
+            .filter(|v| !v.is_nan())
+            .collect();
+        for dim in [16, 24, 40, 7] {
+            let n = all.len() / dim;
+            let codes = Codes {
+                dim,
+                values: all[..n * dim].to_vec(),
+            };
+            let rows: Vec<u32> = (0..n as u32).rev().step_by(3).collect();
+            let mut got = vec![0f32; rows.len() * dim];
+            codes.rows_into(&rows, &mut got);
+            let mut want = vec![0f32; dim];
+            for (g, r) in got.chunks(dim).zip(&rows) {
+                codes.row_into(*r as usize, &mut want);
+                assert!(
+                    g.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits()),
+                    "dim {dim}, row {r}"
+                );
+            }
+        }
+    }
 }

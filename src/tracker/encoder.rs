@@ -501,12 +501,41 @@ impl LinearDenoisingEncoder {
     }
 
     fn project(&self, w_t: &[f32], x_centred: &[f32], n: usize, out: &mut [f32]) {
-        let wv = DMatrixView::from_slice(w_t, self.code_dim, self.input_dim);
-        let xv = DMatrixView::from_slice(x_centred, self.input_dim, n);
-        let mut ov = DMatrixViewMut::from_slice(&mut out[..n * self.code_dim], self.code_dim, n);
-        ov.gemm(1.0, &wv, &xv, 0.0);
+        project_columns(w_t, self.code_dim, self.input_dim, x_centred, n, out);
     }
 }
+
+/// `out = W x` for the `k x d` matrix `w_t` and the `n` columns `x` (column-major, as `out`).
+fn project_columns(w_t: &[f32], k: usize, d: usize, x_centred: &[f32], n: usize, out: &mut [f32]) {
+    let gemm = |x: &[f32], out: &mut [f32], cols: usize| {
+        let wv = DMatrixView::from_slice(w_t, k, d);
+        let xv = DMatrixView::from_slice(x, d, cols);
+        let mut ov = DMatrixViewMut::from_slice(out, k, cols);
+        ov.gemm(1.0, &wv, &xv, 0.0);
+    };
+    // the columns (codes) in one block per thread: each output is the same sum as in one
+    // product (matrixmultiply's depth blocking does not depend on the column count; every
+    // block keeps more than nalgebra's `SMALL_DIM` columns, so none takes its naive loop)
+    let parts = rayon::current_num_threads().min(n / PROJECT_MIN_COLUMNS).max(1);
+    if parts == 1 {
+        gemm(&x_centred[..n * d], &mut out[..n * k], n);
+        return;
+    }
+    let mut blocks: Vec<(&[f32], &mut [f32], usize)> = Vec::with_capacity(parts);
+    let (mut x, mut o) = (&x_centred[..n * d], &mut out[..n * k]);
+    for i in 0..parts {
+        let cols = n / parts + usize::from(i < n % parts);
+        let (xa, xb) = x.split_at(cols * d);
+        let (oa, ob) = o.split_at_mut(cols * k);
+        blocks.push((xa, oa, cols));
+        (x, o) = (xb, ob);
+    }
+    blocks.into_par_iter().for_each(|(x, o, cols)| gemm(x, o, cols));
+}
+
+/// Fewest codes in one thread's block of the projection (nalgebra multiplies matrices of at
+/// most 5 columns with its own loop, whose sums differ from matrixmultiply's in the last bit).
+const PROJECT_MIN_COLUMNS: usize = 16;
 
 impl Encoder for LinearDenoisingEncoder {
     fn input_dim(&self) -> usize {
@@ -578,6 +607,31 @@ pub fn normalise_rows(x: &mut [f32], k: usize) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn projection_in_blocks_is_the_projection_in_one() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let (k, d) = (24, 300);
+        let w: Vec<f32> = (0..k * d).map(|_| rng.random::<f32>() - 0.5).collect();
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+        for n in [1, 5, 6, 17, 47, 48, 110, 331] {
+            let x: Vec<f32> = (0..n * d).map(|_| rng.random::<f32>() - 0.5).collect();
+            let mut whole = vec![0f32; n * k];
+            DMatrixViewMut::from_slice(&mut whole, k, n).gemm(
+                1.0,
+                &DMatrixView::from_slice(&w, k, d),
+                &DMatrixView::from_slice(&x, d, n),
+                0.0,
+            );
+            let mut blocks = vec![0f32; n * k];
+            pool.install(|| project_columns(&w, k, d, &x, n, &mut blocks));
+            assert!(
+                whole.iter().zip(&blocks).all(|(a, b)| a.to_bits() == b.to_bits()),
+                "n = {n}"
+            );
+        }
+    }
     use rand::{Rng, SeedableRng};
     use rand_distr::{Distribution, Normal};
 

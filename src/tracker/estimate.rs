@@ -514,6 +514,57 @@ pub struct RotationSummary {
     pub jumped: bool,
 }
 
+/// The `k` heaviest bins of `mixture`, heaviest first: the `k - 1`-th selection of all bins
+/// then a stable sort (ties in the order the selection left them). Where the `k + 1`
+/// heaviest values are all distinct (the usual case: the floor's many equal bins lie below
+/// them) the answer is unique, and a bounded heap over one pass finds it without the
+/// selection over the whole grid.
+fn top_bins(mixture: &[f64], k: usize) -> Vec<usize> {
+    use std::cmp::Reverse;
+    use std::collections::BinaryHeap;
+    #[derive(PartialEq)]
+    struct Key(f64, usize);
+    impl Eq for Key {}
+    impl PartialOrd for Key {
+        fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+            Some(self.cmp(other))
+        }
+    }
+    impl Ord for Key {
+        fn cmp(&self, other: &Self) -> std::cmp::Ordering {
+            self.0.total_cmp(&other.0)
+        }
+    }
+    let dense = || {
+        let mut idx: Vec<usize> = (0..mixture.len()).collect();
+        idx.select_nth_unstable_by(k - 1, |a, b| mixture[*b].total_cmp(&mixture[*a]));
+        idx.truncate(k);
+        idx.sort_by(|a, b| mixture[*b].total_cmp(&mixture[*a]));
+        idx
+    };
+    if mixture.len() <= k + 1 {
+        return dense();
+    }
+    // the k + 1 largest values (a min-heap of them)
+    let mut heap: BinaryHeap<Reverse<Key>> = BinaryHeap::with_capacity(k + 2);
+    for (b, v) in mixture.iter().enumerate() {
+        if heap.len() <= k {
+            heap.push(Reverse(Key(*v, b)));
+        } else if v.total_cmp(&heap.peek().expect("non-empty").0.0).is_gt() {
+            heap.pop();
+            heap.push(Reverse(Key(*v, b)));
+        }
+    }
+    let mut top: Vec<(f64, usize)> = heap.into_iter().map(|Reverse(Key(v, b))| (v, b)).collect();
+    top.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let distinct = top.windows(2).all(|w| w[0].0.total_cmp(&w[1].0).is_gt()) && top.iter().all(|t| t.0.is_finite());
+    if !distinct {
+        return dense();
+    }
+    top.truncate(k);
+    top.into_iter().map(|(_, b)| b).collect()
+}
+
 /// Rotation estimate, modes and entropy from a mixture histogram (see the module docs).
 pub fn summarise_rotation(
     grid: &RotationGrid,
@@ -523,17 +574,22 @@ pub fn summarise_rotation(
     config: &EstimateConfig,
 ) -> RotationSummary {
     let total: f64 = mixture.iter().sum::<f64>().max(1e-300);
+    // the same terms in the same order; a run of equal values (a row of bins on the floor)
+    // reuses its term instead of taking the logarithm again
+    let mut last = (f64::NAN, 0.0);
     let entropy = -mixture
         .iter()
         .map(|m| m / total)
         .filter(|p| *p > 0.0)
-        .map(|p| p * p.ln())
+        .map(|p| {
+            if p.to_bits() != last.0.to_bits() {
+                last = (p, p * p.ln());
+            }
+            last.1
+        })
         .sum::<f64>();
     let k = config.top_k_bins.min(mixture.len()).max(1);
-    let mut idx: Vec<usize> = (0..mixture.len()).collect();
-    idx.select_nth_unstable_by(k - 1, |a, b| mixture[*b].total_cmp(&mixture[*a]));
-    idx.truncate(k);
-    idx.sort_by(|a, b| mixture[*b].total_cmp(&mixture[*a]));
+    let idx = top_bins(mixture, k);
     let ray = ray_rotation(mean_position);
     let top: Vec<(UnitQuaternion<f64>, f64)> = idx
         .iter()
@@ -620,6 +676,44 @@ pub fn summarise_rotation(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The selection of the heaviest bins over the whole grid, as it was.
+    fn top_bins_by_selection(mixture: &[f64], k: usize) -> Vec<usize> {
+        let mut idx: Vec<usize> = (0..mixture.len()).collect();
+        idx.select_nth_unstable_by(k - 1, |a, b| mixture[*b].total_cmp(&mixture[*a]));
+        idx.truncate(k);
+        idx.sort_by(|a, b| mixture[*b].total_cmp(&mixture[*a]));
+        idx
+    }
+
+    #[test]
+    fn heaviest_bins_are_those_of_the_selection_over_the_grid() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        for (active, k) in [(5000, 200), (150, 200), (201, 200), (0, 200), (3000, 1)] {
+            // a floor of a few equal values per row, and active bins above it
+            let mut m: Vec<f64> = (0..20_000).map(|b| 1e-6 * (1 + b / 5000) as f64).collect();
+            for _ in 0..active {
+                let b = rng.random_range(0..m.len());
+                m[b] = rng.random::<f64>();
+            }
+            let got = top_bins(&m, k);
+            let want = top_bins_by_selection(&m, k);
+            assert_eq!(got.len(), k);
+            // the same bins in the same order wherever the order is unique; the values agree
+            // everywhere
+            let gv: Vec<f64> = got.iter().map(|b| m[*b]).collect();
+            let wv: Vec<f64> = want.iter().map(|b| m[*b]).collect();
+            assert_eq!(gv, wv, "active {active}, k {k}");
+            if active >= 2 * k {
+                assert_eq!(got, want, "active {active}, k {k}");
+            }
+        }
+        // ties among the heaviest: the selection's own answer
+        let mut m = vec![0.5; 1000];
+        m[7] = 0.9;
+        assert_eq!(top_bins(&m, 10), top_bins_by_selection(&m, 10));
+    }
 
     #[test]
     fn average_of_close_quaternions_is_between_them() {

@@ -162,9 +162,19 @@ impl RotationState {
             .map(|b| floor * tables.volume(b))
             .collect();
         let cf32: Vec<f32> = cf.iter().map(|v| *v as f32).collect();
-        for (a, b) in self.active.iter().enumerate() {
-            let row = &self.values[a * nc..(a + 1) * nc];
-            m[*b as usize] = row.iter().zip(&cf32).map(|(v, w)| v * w).sum::<f32>() as f64;
+        // the active bins' values over all threads (each the same sum as alone), then placed
+        let on_active: Vec<f64> = self
+            .active
+            .par_iter()
+            .enumerate()
+            .with_min_len(256)
+            .map(|(a, _)| {
+                let row = &self.values[a * nc..(a + 1) * nc];
+                row.iter().zip(&cf32).map(|(v, w)| v * w).sum::<f32>() as f64
+            })
+            .collect();
+        for (b, v) in self.active.iter().zip(on_active) {
+            m[*b as usize] = v;
         }
         m
     }
@@ -201,7 +211,7 @@ impl RotationState {
             .collect();
         let k = kept.len();
         if k != nc || kept.iter().enumerate().any(|(i, c)| i != *c) {
-            let mut values = vec![0f32; self.active.len() * k];
+            let mut values = par_zeroed(self.active.len() * k);
             values
                 .par_chunks_mut(k.max(1) * 256)
                 .zip(self.values.par_chunks(nc.max(1) * 256))
@@ -275,7 +285,7 @@ impl RotationState {
             keep.truncate(max_active);
         }
         keep.sort_unstable_by_key(|k| k.0);
-        let mut values = vec![0f32; keep.len() * nc];
+        let mut values = par_zeroed(keep.len() * nc);
         values.par_chunks_mut(nc).zip(&keep).for_each(|(dst, k)| {
             dst.copy_from_slice(&self.values[k.2 * nc..(k.2 + 1) * nc]);
         });
@@ -380,6 +390,14 @@ pub fn map_bins(tables: &GridTables, q: &UnitQuaternion<f64>, bins: &[u32]) -> V
         .collect()
 }
 
+/// A zeroed buffer of `len` values, the zeros written by all threads: the step's buffers run to
+/// tens of megabytes, and one thread's `memset` of them held the other threads idle.
+pub fn par_zeroed(len: usize) -> Vec<f32> {
+    let mut v = Vec::with_capacity(len);
+    v.par_extend(rayon::iter::repeat_n(0f32, len));
+    v
+}
+
 /// Rows of a gathered matching task.
 const GATHER_ROWS: usize = 256;
 
@@ -410,9 +428,7 @@ pub fn match_rows(
         .map(|(chunk, rs)| {
             GATHER.with_borrow_mut(|g| {
                 g.resize(rs.len() * kd, 0.0);
-                for (dst, r) in g.chunks_mut(kd).zip(rs) {
-                    book.row_into(*r as usize, dst);
-                }
+                book.rows_into(rs, g);
                 gemm_nt(chunk, codes, g, n, rs.len(), kd);
             });
             let mut m = vec![f32::NEG_INFINITY; n];
@@ -480,7 +496,7 @@ pub fn fused_update(
     fmax: &[f32],
 ) -> (Vec<f32>, Vec<f64>) {
     let n = fmax.len();
-    let mut post = vec![0f32; bins.len() * n];
+    let mut post = par_zeroed(bins.len() * n);
     if n == 0 || bins.is_empty() {
         return (post, vec![0.0; n]);
     }
@@ -711,7 +727,7 @@ fn blur_pass(
     out_bins.par_sort_unstable();
     let stamp = &work.stamp;
     let slot = &work.slot;
-    let mut out = vec![0f32; out_bins.len() * nc];
+    let mut out = par_zeroed(out_bins.len() * nc);
     out.par_chunks_mut(nc * 64)
         .zip(out_bins.par_chunks(64))
         .for_each(|(chunk, obs)| {

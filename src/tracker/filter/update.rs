@@ -4,6 +4,7 @@
 
 use super::{MAP_REUSE_RAD, Tracker, normalise, weight_exponent};
 use crate::geometry::Pose;
+use crate::tracker::bins::flat_of_matrix;
 use crate::tracker::observation::{ViewEvidence, ViewImage, encode_particles, view_evidence};
 use crate::tracker::sparse::{Lattice, RotationState, fused_max, fused_row, fused_update, map_bins, match_rows};
 use crate::tracker::{CameraFrame, StepReport, TrackStatus};
@@ -21,8 +22,9 @@ struct Encoded {
     positions_in_view_m: Vec<Vector3<f64>>,
     /// Histogram bin `b` (frame H) reads the view's codebook bin `bin(q * R_b)`.
     q: UnitQuaternion<f64>,
-    /// The whole grid's map, when cached.
-    dense_map: Option<Arc<Vec<u32>>>,
+    /// The cached map of the grid (`u32::MAX` where not yet computed) and the rotation it maps
+    /// by (the cache's, within `MAP_REUSE_RAD` of `q`).
+    dense_map: Option<(Arc<Vec<u32>>, UnitQuaternion<f64>)>,
     /// The object's diameter in pixels at the particles' mean depth.
     size_px: f32,
 }
@@ -180,13 +182,21 @@ impl Tracker {
             (start, len)
         };
         let (mut bins, mut slots, lattice_rows) = merge(&self.states[ti].rot.active, &lattice.points, slice, nb);
-        // bin maps: a cached whole-grid map where the camera's rotation held still
+        // bin maps: a cached map of the grid where the camera's rotation held still
         for e in &mut encoded {
-            e.dense_map = self.cached_map(ti, &e.camera, &e.q, matching.dense, &tables);
+            e.dense_map = self.cached_map(ti, &e.camera, &e.q, matching.dense, &tables, &bins);
         }
         let map_of = |e: &Encoded, bins: &[u32]| -> Vec<u32> {
             match &e.dense_map {
-                Some(m) => bins.iter().map(|b| m[*b as usize]).collect(),
+                Some((m, cq)) => {
+                    let qm = cq.to_rotation_matrix().into_inner();
+                    bins.iter()
+                        .map(|b| match m[*b as usize] {
+                            u32::MAX => flat_of_matrix(&tables.grid, &(qm * tables.matrix(*b as usize))) as u32,
+                            v => v,
+                        })
+                        .collect()
+                }
                 None if e.q.angle() < 1e-9 => bins.to_vec(),
                 None => map_bins(&tables, &e.q, bins),
             }
@@ -475,8 +485,10 @@ impl Tracker {
         !bins.contains(&best)
     }
 
-    /// The whole-grid bin map of `camera` for rotation `q` when it is cached or its rotation
-    /// held still since the last step (then built and cached); `None`: map the bins needed.
+    /// The cached bin map of `camera` and the rotation it maps by, when the camera's rotation
+    /// `q` held still since the last step (`None`: map the bins needed by `q`). A cached map is
+    /// filled where `needed` asks (and kept for the next steps): the whole grid's map of the
+    /// cached rotation as the dense reference builds it, computed only where it is read.
     fn cached_map(
         &mut self,
         ti: usize,
@@ -484,30 +496,42 @@ impl Tracker {
         q: &UnitQuaternion<f64>,
         dense: bool,
         tables: &crate::tracker::bins::GridTables,
-    ) -> Option<Arc<Vec<u32>>> {
+        needed: &[u32],
+    ) -> Option<(Arc<Vec<u32>>, UnitQuaternion<f64>)> {
         if q.angle() < 1e-9 {
             return None;
         }
         let cache = &mut self.states[ti].map_cache;
         let entry = cache.iter_mut().find(|(c, _, _)| c == camera);
-        match entry {
+        let (cq, map) = match entry {
             Some((_, cq, map)) if cq.angle_to(q) < MAP_REUSE_RAD => {
-                if map.is_none() {
-                    *map = Some(Arc::new(tables.pull_map(cq)));
-                }
-                map.clone()
+                let map = map.get_or_insert_with(|| Arc::new(vec![u32::MAX; tables.grid.len()]));
+                (*cq, map)
             }
             Some((_, cq, map)) => {
                 *cq = *q;
                 *map = dense.then(|| Arc::new(tables.pull_map(q)));
-                map.clone()
+                return map.clone().map(|m| (m, *q));
             }
             None => {
                 let map = dense.then(|| Arc::new(tables.pull_map(q)));
                 cache.push((camera.to_string(), *q, map.clone()));
-                map
+                return map.map(|m| (m, *q));
+            }
+        };
+        let missing: Vec<u32> = needed
+            .iter()
+            .filter(|b| map[**b as usize] == u32::MAX)
+            .copied()
+            .collect();
+        if !missing.is_empty() {
+            let values = map_bins(tables, &cq, &missing);
+            let m = Arc::make_mut(map);
+            for (b, v) in missing.iter().zip(values) {
+                m[*b as usize] = v;
             }
         }
+        Some((map.clone(), cq))
     }
 
     /// When two or more rotation modes of track `ti` each hold at least
