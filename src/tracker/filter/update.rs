@@ -960,6 +960,17 @@ fn refine_bins(
     for b in bins {
         matched_in_cell[lattice.cell_of[*b as usize] as usize] += 1;
     }
+    // the log prior density of a bin on the floor depends on its column and elevation row
+    // only: taken once per pair (the same expression as per bin, so the same values)
+    let per_row = tables.grid.n_azimuth() * tables.grid.n_inplane();
+    let floor_ln: Vec<f32> = tables
+        .elevation_volume
+        .iter()
+        .flat_map(|v| {
+            let vol = *v as f32;
+            rot.floors.iter().map(move |fl| ((fl * vol) / vol).max(1e-30).ln())
+        })
+        .collect();
     let mut scored: Vec<(f32, usize)> = lattice_rows
         .par_iter()
         .enumerate()
@@ -971,15 +982,16 @@ fn refine_bins(
             fused_row(views, i, n, &mut f);
             let b = bins[i] as usize;
             let vol = tables.volume(b) as f32;
+            let on_floor = &floor_ln[(b / per_row) * nc..(b / per_row + 1) * nc];
             let best = (0..n)
                 .map(|p| {
                     let col = rot.column_of[p] as usize;
-                    let prior = if slots[i] == u32::MAX {
-                        rot.floors[col] * vol
+                    let ln_prior = if slots[i] == u32::MAX {
+                        on_floor[col]
                     } else {
-                        rot.values[slots[i] as usize * nc + col]
+                        (rot.values[slots[i] as usize * nc + col] / vol).max(1e-30).ln()
                     };
-                    (prior / vol).max(1e-30).ln() + f[p]
+                    ln_prior + f[p]
                 })
                 .fold(f32::NEG_INFINITY, f32::max);
             (best, c)
