@@ -187,7 +187,6 @@ pub fn config_from(args: &ServeArgs) -> anyhow::Result<ApiConfig> {
 
 pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
     let config = config_from(&args)?;
-    limit_malloc_arenas();
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(async move {
         let state = AppState::open(config.clone())?;
@@ -215,11 +214,12 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
 }
 
 /// Ctrl-C or SIGTERM.
-/// Caps glibc's malloc arenas at one per core before any thread starts. A long-running service
-/// allocates frames, crops and answers on many threads (tokio, rayon, the worker); with glibc's
-/// default of eight arenas per core its resident memory crept higher under the soak's steady
-/// load (`docs/decisions.md`). Other platforms: nothing.
-fn limit_malloc_arenas() {
+/// Caps glibc's malloc arenas at one per core; every command calls it first, before any thread
+/// starts. A long-running service allocates frames, crops and answers on many threads (tokio,
+/// rayon, the worker); with glibc's default of eight arenas per core its resident memory crept
+/// higher under the soak's steady load, and tracks updated side by side held their freed
+/// matching buffers in more arenas (`docs/decisions.md`). Other platforms: nothing.
+pub fn limit_malloc_arenas() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
         let cores = std::thread::available_parallelism().map_or(2, |n| n.get()).max(2);

@@ -705,12 +705,7 @@ impl Tracker {
         }
 
         // 3. update, 4. estimates and resampling
-        for ti in 0..self.states.len() {
-            if self.states[ti].n() == 0 {
-                continue;
-            }
-            self.update_track(ti, &views, &mut report);
-        }
+        self.update_tracks(&views, &mut report);
         report.timings.total_s = t_start.elapsed().as_secs_f64();
         Ok(report)
     }

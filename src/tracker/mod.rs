@@ -242,6 +242,35 @@ pub struct StageTimings {
     pub total_s: f64,
 }
 
+impl StepReport {
+    /// Adds another report of the same step (one track's update) to this one.
+    pub fn absorb(&mut self, other: StepReport) {
+        let StepReport {
+            stamp_ns: _,
+            tracks_created,
+            tracks_reinitialised,
+            tracks_lost,
+            timings,
+            matched_bins,
+            active_bins,
+            audited,
+            audit_outside,
+            verified,
+            registered,
+        } = other;
+        self.tracks_created.extend(tracks_created);
+        self.tracks_reinitialised.extend(tracks_reinitialised);
+        self.tracks_lost.extend(tracks_lost);
+        self.timings.accumulate(&timings);
+        self.matched_bins += matched_bins;
+        self.active_bins += active_bins;
+        self.audited += audited;
+        self.audit_outside += audit_outside;
+        self.verified += verified;
+        self.registered += registered;
+    }
+}
+
 impl StageTimings {
     /// The stages by name (the total last), for tables and metrics.
     pub fn stages(&self) -> [(&'static str, f64); 12] {

@@ -501,7 +501,7 @@ pub fn fused_update(
         return (post, vec![0.0; n]);
     }
     const CHUNK: usize = 512;
-    let sums = post
+    let chunk_sums = post
         .par_chunks_mut(CHUNK * n)
         .enumerate()
         .map(|(c, out)| {
@@ -525,15 +525,14 @@ pub fn fused_update(
                 },
             )
         })
-        .reduce(
-            || vec![0f64; n],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    *x += y;
-                }
-                a
-            },
-        );
+        .collect::<Vec<Vec<f64>>>();
+    // the chunks' sums in chunk order: the same sums however the threads shared the chunks
+    let mut sums = vec![0f64; n];
+    for c in chunk_sums {
+        for (x, y) in sums.iter_mut().zip(c) {
+            *x += y;
+        }
+    }
     (post, sums)
 }
 

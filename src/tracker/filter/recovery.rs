@@ -7,7 +7,7 @@
 //! supporting ones, and a recovery is followed by a cool-down, so two instances seen by
 //! different cameras cannot make the track jump back and forth.
 
-use super::{Tracker, detection_centre, normalise};
+use super::{Model, TrackState, Tracker, TrackerConfig, detection_centre, normalise};
 use crate::geometry::Pose;
 use crate::tracker::{CameraFrame, Detection, ReinitReason, Reinitialisation, StepReport, TrackStatus};
 use nalgebra::{Matrix3, Point3, Vector3};
@@ -33,8 +33,7 @@ fn mahalanobis2(d: &Vector3<f64>, cov: &Matrix3<f64>) -> f64 {
 }
 
 impl Tracker {
-    /// Whether `det` in `frame` holds track `si`: the track's mean projects inside the box grown
-    /// by `association_margin_rel` of its side.
+    /// Whether `det` in `frame` holds track `si` (see [`detection_holds`]).
     pub(super) fn detection_holds(
         &self,
         si: usize,
@@ -42,24 +41,7 @@ impl Tracker {
         det: &Detection,
         view_from_ref: &Pose,
     ) -> bool {
-        let s = &self.states[si];
-        if s.n() == 0 {
-            return false;
-        }
-        let [bx, by, bw, bh] = det.bbox_xywh_px;
-        let margin = self.config.association_margin_rel;
-        let m = s.set(&self.models[s.model].tables, self.config.spread).mean_position();
-        let p = view_from_ref * Point3::from(m);
-        // the box's edges are at bx - 0.5 and bx + bw - 0.5 in pixel coordinates
-        match frame.intrinsics.project(&p).map(|[u, v]| [u + 0.5, v + 0.5]) {
-            Some([u, v]) => {
-                u >= bx - margin * bw
-                    && u <= bx + bw * (1.0 + margin)
-                    && v >= by - margin * bh
-                    && v <= by + bh * (1.0 + margin)
-            }
-            None => false,
-        }
+        detection_holds(&self.states[si], &self.models, &self.config, frame, det, view_from_ref)
     }
 
     /// The position of the object's centre that a detection implies (reference frame), with the
@@ -215,5 +197,34 @@ impl Tracker {
         });
         report.tracks_reinitialised.push(track.id);
         self.refresh_estimate(ti);
+    }
+}
+
+/// Whether `det` in `frame` holds the track of state `s`: the track's mean projects inside the
+/// box grown by `association_margin_rel` of its side.
+pub(super) fn detection_holds(
+    s: &TrackState,
+    models: &[Model],
+    config: &TrackerConfig,
+    frame: &CameraFrame,
+    det: &Detection,
+    view_from_ref: &Pose,
+) -> bool {
+    if s.n() == 0 {
+        return false;
+    }
+    let [bx, by, bw, bh] = det.bbox_xywh_px;
+    let margin = config.association_margin_rel;
+    let m = s.set(&models[s.model].tables, config.spread).mean_position();
+    let p = view_from_ref * Point3::from(m);
+    // the box's edges are at bx - 0.5 and bx + bw - 0.5 in pixel coordinates
+    match frame.intrinsics.project(&p).map(|[u, v]| [u + 0.5, v + 0.5]) {
+        Some([u, v]) => {
+            u >= bx - margin * bw
+                && u <= bx + bw * (1.0 + margin)
+                && v >= by - margin * bh
+                && v <= by + bh * (1.0 + margin)
+        }
+        None => false,
     }
 }

@@ -2,7 +2,7 @@
 //! set (see [`crate::tracker::sparse`]), the fused update of the histograms and the weights,
 //! estimates and resampling.
 
-use super::{MAP_REUSE_RAD, Tracker, normalise, weight_exponent};
+use super::{MAP_REUSE_RAD, TrackState, Tracker, normalise, weight_exponent};
 use crate::geometry::Pose;
 use crate::tracker::bins::flat_of_matrix;
 use crate::tracker::observation::{ViewEvidence, ViewImage, encode_particles, view_evidence};
@@ -108,22 +108,37 @@ fn merge(a: &[u32], b: &[u32], slice: (usize, usize), nb: usize) -> (Vec<u32>, V
     (out, slots, b_index)
 }
 
-impl Tracker {
-    /// The update of track `ti` with this step's views (see the module docs).
-    pub(super) fn update_track(&mut self, ti: usize, views: &[(&CameraFrame, Pose, usize)], report: &mut StepReport) {
-        let mi = self.states[ti].model;
+/// One track's update in a step, run beside the other tracks' (it reads the tracker's models
+/// and settings and writes only its own track): everything up to the resampling, which draws
+/// from the tracker's one random stream and so follows in track order.
+struct TrackUpdate<'a> {
+    config: &'a super::TrackerConfig,
+    models: &'a [super::Model],
+    camera_names: &'a [String],
+    stamp_ns: i64,
+    state: &'a mut TrackState,
+    track: &'a mut crate::tracker::Track,
+    /// Similarity buffers reused between views (back to the tracker's pool after the update).
+    sims: Vec<Vec<f32>>,
+}
+
+impl TrackUpdate<'_> {
+    /// The update of the track with this step's views (see the module docs), up to its
+    /// resampling ([`Tracker::finish_update`]); whether any view had evidence of it.
+    fn update(&mut self, views: &[(&CameraFrame, Pose, usize)], report: &mut StepReport) -> bool {
+        let mi = self.state.model;
         let codebook = self.models[mi].codebook.clone();
         let tables = self.models[mi].tables.clone();
         let lattice = self.models[mi].lattice.clone();
-        let n = self.states[ti].n();
+        let n = self.state.n();
         let nb = tables.grid.len();
         let kd = codebook.code_dim();
         let obs_cfg = self.config.observation;
         let matching = self.config.matching;
         // the registration's narrower floor holds for the step that registered only
-        self.states[ti].registered = None;
-        let mean_ref = self.states[ti].set(&tables, self.config.spread).mean_position();
-        let reference_from_hist = self.states[ti].reference_from_hist;
+        self.state.registered = None;
+        let mean_ref = self.state.set(&tables, self.config.spread).mean_position();
+        let reference_from_hist = self.state.reference_from_hist;
         let mean_hist = reference_from_hist
             .inverse_transform_point(&Point3::from(mean_ref))
             .coords;
@@ -132,7 +147,8 @@ impl Tracker {
         // 1. crops and codes of every view that has a usable crop
         let mut encoded: Vec<Encoded> = Vec::new();
         for (frame, view_from_ref, _ci) in views {
-            let positions: Vec<Vector3<f64>> = self.states[ti]
+            let positions: Vec<Vector3<f64>> = self
+                .state
                 .positions
                 .iter()
                 .map(|p| (view_from_ref * Point3::from(*p)).coords)
@@ -176,15 +192,15 @@ impl Tracker {
             (0, nb)
         } else {
             let len = nb.div_ceil(matching.slice_steps.max(1));
-            let s = &mut self.states[ti];
+            let s = &mut *self.state;
             let start = s.slice_cursor % nb;
             s.slice_cursor = (start + len) % nb;
             (start, len)
         };
-        let (mut bins, mut slots, lattice_rows) = merge(&self.states[ti].rot.active, &lattice.points, slice, nb);
+        let (mut bins, mut slots, lattice_rows) = merge(&self.state.rot.active, &lattice.points, slice, nb);
         // bin maps: a cached map of the grid where the camera's rotation held still
         for e in &mut encoded {
-            e.dense_map = self.cached_map(ti, &e.camera, &e.q, matching.dense, &tables, &bins);
+            e.dense_map = self.cached_map(&e.camera, &e.q, matching.dense, &tables, &bins);
         }
         let map_of = |e: &Encoded, bins: &[u32]| -> Vec<u32> {
             match &e.dense_map {
@@ -237,7 +253,7 @@ impl Tracker {
                 Vec::new()
             } else {
                 let refs: Vec<&ViewEvidence> = provisional.iter().collect();
-                let s = &self.states[ti];
+                let s = &self.state;
                 refine_bins(
                     &lattice,
                     &refs,
@@ -307,13 +323,13 @@ impl Tracker {
         }
         report.timings.likelihoods_s += t0.elapsed().as_secs_f64();
         if matching.audit && !evidence.is_empty() {
-            let outside = self.audit_matched_set(ti, &encoded, &evidence, &evidence_view, &bins, &tables, &codebook);
+            let outside = self.audit_matched_set(&encoded, &evidence, &evidence_view, &bins, &tables, &codebook);
             report.audited += 1;
             report.audit_outside += usize::from(outside);
         }
 
         let t0 = Instant::now();
-        let track = &mut self.tracks[ti];
+        let track = &mut *self.track;
         track.stamp_ns = self.stamp_ns;
         track.seen_by = seen_by.clone();
         track.best_similarity = best_sim.is_finite().then_some(best_sim as f64);
@@ -330,7 +346,7 @@ impl Tracker {
                 fused_max(&refs, bins.len(), n)
             };
             let floor_rel = self.config.prior_floor_rel as f32;
-            let s = &self.states[ti];
+            let s = &self.state;
             let (mut post, sums) = fused_update(&bins, &slots, &refs, &s.rot, &tables, floor_rel, &fmax);
             // the bins left out: each at its lattice cell's likelihood, on the prior's floor
             let unmatched = if matching.dense {
@@ -344,7 +360,7 @@ impl Tracker {
             // new log weights: old + (log marginal (Eq. 7) + depth term) tempered by the number
             // of views (see `TrackerConfig::view_weight_tempering`)
             let alpha = weight_exponent(seen_by.len(), self.config.view_weight_tempering);
-            let s = &mut self.states[ti];
+            let s = &mut *self.state;
             let mut logw: Vec<f64> = (0..n)
                 .map(|p| {
                     s.weights[p].max(1e-300).ln()
@@ -388,10 +404,10 @@ impl Tracker {
         // the similarity buffers go back to the pool for the next view, track and step
         self.sims.extend(evidence.into_iter().map(|ev| ev.sim));
         report.timings.fusion_s += t0.elapsed().as_secs_f64();
-        super::floor_components(&mut self.states[ti], self.config.min_component_weight);
+        super::floor_components(&mut *self.state, self.config.min_component_weight);
 
         // status
-        let track = &mut self.tracks[ti];
+        let track = &mut *self.track;
         if had_evidence && best_sim >= self.config.lost_similarity {
             track.weak_steps = 0;
             if track.status == TrackStatus::Initialising {
@@ -407,39 +423,24 @@ impl Tracker {
 
         // estimates
         let t0 = Instant::now();
-        self.refresh_estimate(ti);
+        self.refresh_estimate();
         report.timings.estimates_s += t0.elapsed().as_secs_f64();
         if had_evidence {
             let t0 = Instant::now();
-            if self.verify_modes(ti, views, &seen_by) {
+            if self.verify_modes(views, &seen_by) {
                 report.verified += 1;
-                self.refresh_estimate(ti);
+                self.refresh_estimate();
             }
             report.timings.verification_s += t0.elapsed().as_secs_f64();
             let t0 = Instant::now();
-            if self.register_translation(ti, views, &seen_by) {
+            if self.register_translation(views, &seen_by) {
                 report.registered += 1;
-                self.refresh_estimate(ti);
+                self.refresh_estimate();
             }
             report.timings.registration_s += t0.elapsed().as_secs_f64();
         }
 
-        // resampling within components, then the bins that went back to the floor
-        let t0 = Instant::now();
-        if had_evidence {
-            self.resample(ti);
-            self.move_registered(ti);
-        }
-        if !matching.dense {
-            let rule = matching.prune_rule(self.config.prior_floor_rel);
-            self.states[ti].rot.prune(&tables, &rule);
-        } else if had_evidence {
-            // the dense reference keeps every bin, in order
-            let s = &mut self.states[ti];
-            sort_active(&mut s.rot);
-        }
-        report.active_bins += self.states[ti].rot.active.len();
-        report.timings.resampling_s += t0.elapsed().as_secs_f64();
+        had_evidence
     }
 
     /// Whether the heaviest particle's fused log-likelihood over the whole grid peaks outside
@@ -447,7 +448,6 @@ impl Tracker {
     #[allow(clippy::too_many_arguments)]
     fn audit_matched_set(
         &self,
-        ti: usize,
         encoded: &[Encoded],
         evidence: &[ViewEvidence],
         evidence_view: &[usize],
@@ -455,7 +455,7 @@ impl Tracker {
         tables: &crate::tracker::bins::GridTables,
         codebook: &crate::tracker::Codebook,
     ) -> bool {
-        let s = &self.states[ti];
+        let s = &self.state;
         let Some(p) = (0..s.n()).max_by(|a, b| s.weights[*a].total_cmp(&s.weights[*b])) else {
             return false;
         };
@@ -491,7 +491,6 @@ impl Tracker {
     /// cached rotation as the dense reference builds it, computed only where it is read.
     fn cached_map(
         &mut self,
-        ti: usize,
         camera: &str,
         q: &UnitQuaternion<f64>,
         dense: bool,
@@ -501,7 +500,7 @@ impl Tracker {
         if q.angle() < 1e-9 {
             return None;
         }
-        let cache = &mut self.states[ti].map_cache;
+        let cache = &mut self.state.map_cache;
         let entry = cache.iter_mut().find(|(c, _, _)| c == camera);
         let (cq, map) = match entry {
             Some((_, cq, map)) if cq.angle_to(q) < MAP_REUSE_RAD => {
@@ -534,14 +533,14 @@ impl Tracker {
         Some((map.clone(), cq))
     }
 
-    /// When two or more rotation modes of track `ti` each hold at least
+    /// When two or more rotation modes of the track each hold at least
     /// `VerificationConfig::min_mode_mass`, renders the heaviest few into every view that saw
     /// the object, scores them against its depth ([`crate::tracker::verify`]) and scales each
     /// mode's bins (those nearer to it than to the other modes, within twice the modes' merge
     /// angle) by `exp(score - best score)`. Returns whether it did.
-    fn verify_modes(&mut self, ti: usize, views: &[(&CameraFrame, Pose, usize)], seen_by: &[String]) -> bool {
+    fn verify_modes(&mut self, views: &[(&CameraFrame, Pose, usize)], seen_by: &[String]) -> bool {
         let cfg = self.config.verification;
-        let Some(est) = self.states[ti].estimate.as_ref() else {
+        let Some(est) = self.state.estimate.as_ref() else {
             return false;
         };
         // shares of the modes' mass (the modes cluster the heaviest bins only)
@@ -560,13 +559,13 @@ impl Tracker {
             return false;
         }
         let mean_ref = est.reference_from_object.translation;
-        let mi = self.states[ti].model;
+        let mi = self.state.model;
         let model = &self.models[mi];
         let mut total = vec![0.0; modes.len()];
         let mut scored = false;
         // the cameras whose direction to the track turned enough since they last verified it
         let min_turn = cfg.min_view_change_deg.to_radians();
-        let hist_from_ref = self.states[ti].reference_from_hist.inverse();
+        let hist_from_ref = self.state.reference_from_hist.inverse();
         let mean_hist = hist_from_ref * Point3::from(mean_ref.vector);
         let mut fresh: Vec<(String, Vector3<f64>)> = Vec::new();
         for (frame, view_from_ref, _) in views.iter().filter(|v| seen_by.contains(&v.0.camera)) {
@@ -574,7 +573,8 @@ impl Tracker {
             let Some(dir) = (camera_hist - mean_hist).try_normalize(1e-9) else {
                 continue;
             };
-            let last = self.states[ti]
+            let last = self
+                .state
                 .verified_from
                 .iter()
                 .find(|(c, _)| c == &frame.camera)
@@ -588,7 +588,7 @@ impl Tracker {
             let object_box = frame
                 .detections
                 .iter()
-                .find(|d| d.object == model.name && self.detection_holds(ti, frame, d, view_from_ref))
+                .find(|d| d.object == model.name && self.detection_holds(frame, d, view_from_ref))
                 .map(|d| d.bbox_xywh_px);
             let poses: Vec<Pose> = modes
                 .iter()
@@ -616,7 +616,7 @@ impl Tracker {
         if !scored {
             return false;
         }
-        let s = &mut self.states[ti];
+        let s = &mut *self.state;
         for (camera, dir) in fresh {
             match s.verified_from.iter_mut().find(|(c, _)| *c == camera) {
                 Some(entry) => entry.1 = dir,
@@ -629,7 +629,7 @@ impl Tracker {
         // estimate's modes are
         let tables = model.tables.clone();
         let radius = 2.0 * self.config.estimate.mode_merge_rad;
-        let s = &mut self.states[ti];
+        let s = &mut *self.state;
         let mean_hist = s
             .reference_from_hist
             .inverse_transform_point(&Point3::from(mean_ref.vector))
@@ -667,12 +667,12 @@ impl Tracker {
     /// particles by a Kalman update towards the views' registered positions, counting the
     /// other cameras' newest fits too while they are young (`carry_max_age_s`). Returns
     /// whether it did.
-    fn register_translation(&mut self, ti: usize, views: &[(&CameraFrame, Pose, usize)], seen_by: &[String]) -> bool {
+    fn register_translation(&mut self, views: &[(&CameraFrame, Pose, usize)], seen_by: &[String]) -> bool {
         let cfg = self.config.registration;
         if cfg.information_scale <= 0.0 {
             return false;
         }
-        let Some(est) = self.states[ti].estimate.as_ref() else {
+        let Some(est) = self.state.estimate.as_ref() else {
             return false;
         };
         let total: f64 = est.rotation_modes.iter().map(|m| m.mass).sum();
@@ -685,7 +685,7 @@ impl Tracker {
         let [x, y, z, w] = top.rotation_xyzw;
         let q = UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z));
         let mean_ref = est.reference_from_object.translation;
-        let model = &self.models[self.states[ti].model];
+        let model = &self.models[self.state.model];
         let diameter_m = model.codebook.diameter_m;
         // the rotation's error: the estimate's rotation-vector covariance (object frame) plus
         // the grid's quantisation (a uniform bin's variance per axis)
@@ -728,7 +728,7 @@ impl Tracker {
         // the other cameras' newest fits, while young enough; this step's replace their own
         let max_age_ns = (cfg.carry_max_age_s.max(0.0) * 1e9) as i64;
         let stamp_ns = self.stamp_ns;
-        let kept = &mut self.states[ti].carried_fits;
+        let kept = &mut self.state.carried_fits;
         kept.retain(|f| {
             (0..=max_age_ns).contains(&(stamp_ns - f.stamp_ns)) && !fresh.iter().any(|g| g.camera == f.camera)
         });
@@ -749,48 +749,21 @@ impl Tracker {
             "registration combined"
         );
         let b: Vector3<f64> = fits.iter().map(|f| f.1 * f.0).sum();
-        self.states[ti].registered = Some(super::Registered {
+        self.state.registered = Some(super::Registered {
             information: h,
             target: b,
             positions: Vec::new(),
         });
-        self.move_registered(ti);
+        move_registered(self.state, self.config.spread);
         true
     }
 
-    /// The positions the track reports with this step's registration: each source camera's
-    /// component updated by it (a Kalman update with the component's spread as the prior),
-    /// after the registration and again after resampling.
-    fn move_registered(&mut self, ti: usize) {
-        let spread = self.config.spread;
-        let s = &mut self.states[ti];
-        let Some((h, b)) = s.registered.as_ref().map(|r| (r.information, r.target)) else {
-            return;
-        };
-        let mut moved = s.positions.clone();
-        for c in components(&s.sources) {
-            let (mean, cov) = crate::tracker::estimate::component_moments(&s.positions, &s.weights, &s.sources, c);
-            let prior = cov + spread.extra(&mean, &cov, None).cov();
-            let Some(gain) = prior.try_inverse().and_then(|p_inv| (p_inv + h).try_inverse()) else {
-                continue;
-            };
-            for (p, src) in moved.iter_mut().zip(&s.sources) {
-                if *src == c {
-                    *p += gain * (b - h * *p);
-                }
-            }
-        }
-        if let Some(r) = s.registered.as_mut() {
-            r.positions = moved;
-        }
-    }
-
     /// Recomputes a track's estimate from its particles.
-    pub(super) fn refresh_estimate(&mut self, ti: usize) {
-        let tables = self.models[self.states[ti].model].tables.clone();
-        let status = self.tracks[ti].status;
+    fn refresh_estimate(&mut self) {
+        let tables = self.models[self.state.model].tables.clone();
+        let status = self.track.status;
         let est = {
-            let s = &self.states[ti];
+            let s = &self.state;
             let set = s.reported_set(&tables, self.config.spread);
             let mean = set.mean_position();
             let mean_hist = s
@@ -830,7 +803,7 @@ impl Tracker {
             let est = crate::tracker::Estimate {
                 reference_from_object: Pose::from_parts(nalgebra::Translation3::from(mean), summary.rotation),
                 translation_std_m: tstd,
-                components: set.components(&self.camera_names),
+                components: set.components(self.camera_names),
                 rotation_modes: summary.modes,
                 rotation_entropy: summary.entropy,
                 covariance_6x6: cov6,
@@ -839,8 +812,100 @@ impl Tracker {
             };
             (est, rotation_hist)
         };
-        self.states[ti].rotation = Some(est.1);
-        self.states[ti].estimate = Some(est.0);
+        self.state.rotation = Some(est.1);
+        self.state.estimate = Some(est.0);
+    }
+
+    fn detection_holds(&self, frame: &CameraFrame, det: &crate::tracker::Detection, view_from_ref: &Pose) -> bool {
+        super::recovery::detection_holds(self.state, self.models, self.config, frame, det, view_from_ref)
+    }
+}
+
+impl Tracker {
+    /// Updates every track that has particles with this step's views: the tracks side by side,
+    /// as many at a time as there are threads (each track's update is the same arithmetic as
+    /// alone; more at once would hold more tracks' matching buffers for no more speed), then in
+    /// track order their resampling.
+    pub(super) fn update_tracks(&mut self, views: &[(&CameraFrame, Pose, usize)], report: &mut StepReport) {
+        let order: Vec<usize> = (0..self.states.len()).filter(|&ti| self.states[ti].n() > 0).collect();
+        let mut pool = std::mem::take(&mut self.sims);
+        let mut jobs: Vec<TrackUpdate> = self
+            .states
+            .iter_mut()
+            .zip(self.tracks.iter_mut())
+            .filter(|(s, _)| s.n() > 0)
+            .map(|(state, track)| TrackUpdate {
+                config: &self.config,
+                models: &self.models,
+                camera_names: &self.camera_names,
+                stamp_ns: self.stamp_ns,
+                state,
+                track,
+                sims: Vec::new(),
+            })
+            .collect();
+        let mut done: Vec<(StepReport, bool)> = Vec::with_capacity(jobs.len());
+        for wave in jobs.chunks_mut(rayon::current_num_threads().max(1)) {
+            for job in wave.iter_mut() {
+                job.sims = (0..views.len()).map_while(|_| pool.pop()).collect();
+            }
+            let results: Vec<(StepReport, bool)> = wave
+                .par_iter_mut()
+                .with_max_len(1)
+                .map(|job| {
+                    let mut r = StepReport::default();
+                    let had_evidence = job.update(views, &mut r);
+                    (r, had_evidence)
+                })
+                .collect();
+            for job in wave.iter_mut() {
+                pool.append(&mut job.sims);
+            }
+            done.extend(results);
+        }
+        drop(jobs);
+        self.sims = pool;
+        for (ti, (r, had_evidence)) in order.into_iter().zip(done) {
+            report.absorb(r);
+            self.finish_update(ti, had_evidence, report);
+        }
+    }
+
+    /// A track's update after [`TrackUpdate::update`]: resampling within components, then the
+    /// bins that went back to the floor.
+    fn finish_update(&mut self, ti: usize, had_evidence: bool, report: &mut StepReport) {
+        let matching = self.config.matching;
+        let tables = self.models[self.states[ti].model].tables.clone();
+        let t0 = Instant::now();
+        if had_evidence {
+            self.resample(ti);
+            let spread = self.config.spread;
+            move_registered(&mut self.states[ti], spread);
+        }
+        if !matching.dense {
+            let rule = matching.prune_rule(self.config.prior_floor_rel);
+            self.states[ti].rot.prune(&tables, &rule);
+        } else if had_evidence {
+            // the dense reference keeps every bin, in order
+            let s = &mut self.states[ti];
+            sort_active(&mut s.rot);
+        }
+        report.active_bins += self.states[ti].rot.active.len();
+        report.timings.resampling_s += t0.elapsed().as_secs_f64();
+    }
+
+    /// Recomputes a track's estimate from its particles.
+    pub(super) fn refresh_estimate(&mut self, ti: usize) {
+        TrackUpdate {
+            config: &self.config,
+            models: &self.models,
+            camera_names: &self.camera_names,
+            stamp_ns: self.stamp_ns,
+            state: &mut self.states[ti],
+            track: &mut self.tracks[ti],
+            sims: Vec::new(),
+        }
+        .refresh_estimate();
     }
 
     /// Systematic resampling inside each source camera's component: the component keeps its
@@ -904,6 +969,31 @@ impl Tracker {
         s.weights = new_w;
         s.sources = new_sources;
         normalise(&mut s.weights);
+    }
+}
+
+/// The positions the track reports with this step's registration: each source camera's
+/// component updated by it (a Kalman update with the component's spread as the prior),
+/// after the registration and again after resampling.
+fn move_registered(s: &mut TrackState, spread: super::SpreadConfig) {
+    let Some((h, b)) = s.registered.as_ref().map(|r| (r.information, r.target)) else {
+        return;
+    };
+    let mut moved = s.positions.clone();
+    for c in components(&s.sources) {
+        let (mean, cov) = crate::tracker::estimate::component_moments(&s.positions, &s.weights, &s.sources, c);
+        let prior = cov + spread.extra(&mean, &cov, None).cov();
+        let Some(gain) = prior.try_inverse().and_then(|p_inv| (p_inv + h).try_inverse()) else {
+            continue;
+        };
+        for (p, src) in moved.iter_mut().zip(&s.sources) {
+            if *src == c {
+                *p += gain * (b - h * *p);
+            }
+        }
+    }
+    if let Some(r) = s.registered.as_mut() {
+        r.positions = moved;
     }
 }
 
@@ -1047,31 +1137,32 @@ fn unmatched_mass(
         .map(|c| rot.floors[*c as usize].max(floor_rel))
         .collect();
     let total: f64 = left.iter().map(|v| v.max(0.0)).sum();
-    let mass = lattice_rows
-        .par_iter()
+    // fixed blocks of cells, summed in order: the same sums however the threads share them
+    const BLOCK: usize = 256;
+    let blocks: Vec<Vec<f64>> = lattice_rows
+        .par_chunks(BLOCK)
         .enumerate()
-        .with_min_len(256)
-        .filter(|(c, _)| left[*c] > 1e-15)
-        .fold(
-            || (vec![0f64; n], vec![0f32; n]),
-            |(mut acc, mut f), (c, row)| {
+        .map(|(k, rows)| {
+            let (mut acc, mut f) = (vec![0f64; n], vec![0f32; n]);
+            for (j, row) in rows.iter().enumerate() {
+                let c = k * BLOCK + j;
+                if left[c] <= 1e-15 {
+                    continue;
+                }
                 fused_row(views, *row as usize, n, &mut f);
                 for p in 0..n {
                     acc[p] += (lvl[p] as f64) * left[c] * crate::tracker::bins::fast_exp(f[p] - fmax[p]) as f64;
                 }
-                (acc, f)
-            },
-        )
-        .map(|(a, _)| a)
-        .reduce(
-            || vec![0f64; n],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    *x += y;
-                }
-                a
-            },
-        );
+            }
+            acc
+        })
+        .collect();
+    let mut mass = vec![0f64; n];
+    for b in blocks {
+        for (x, y) in mass.iter_mut().zip(b) {
+            *x += y;
+        }
+    }
     (mass, total)
 }
 
