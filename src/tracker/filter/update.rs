@@ -10,7 +10,8 @@ use crate::tracker::sparse::{Lattice, RotationState, fused_max, fused_row, fused
 use crate::tracker::{CameraFrame, StepReport, TrackStatus};
 use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Instant;
 
 /// One view's codes of a track's particles, with what the update needs of the view.
@@ -828,8 +829,8 @@ impl Tracker {
     /// track order their resampling.
     pub(super) fn update_tracks(&mut self, views: &[(&CameraFrame, Pose, usize)], report: &mut StepReport) {
         let order: Vec<usize> = (0..self.states.len()).filter(|&ti| self.states[ti].n() > 0).collect();
-        let mut pool = std::mem::take(&mut self.sims);
-        let mut jobs: Vec<TrackUpdate> = self
+        let pool = std::mem::take(&mut self.sims);
+        let jobs: Vec<TrackUpdate> = self
             .states
             .iter_mut()
             .zip(self.tracks.iter_mut())
@@ -844,27 +845,45 @@ impl Tracker {
                 sims: Vec::new(),
             })
             .collect();
-        let mut done: Vec<(StepReport, bool)> = Vec::with_capacity(jobs.len());
-        for wave in jobs.chunks_mut(rayon::current_num_threads().max(1)) {
-            for job in wave.iter_mut() {
-                job.sims = (0..views.len()).map_while(|_| pool.pop()).collect();
+        // as many workers as threads, each taking the next track when it is done with one: at
+        // most that many tracks' buffers at once, and no core idle while a track is left
+        let n_jobs = jobs.len();
+        let workers = rayon::current_num_threads().clamp(1, n_jobs.max(1));
+        let jobs: Vec<Mutex<TrackUpdate>> = jobs.into_iter().map(Mutex::new).collect();
+        let results: Vec<Mutex<Option<(StepReport, bool)>>> = (0..n_jobs).map(|_| Mutex::new(None)).collect();
+        let next = AtomicUsize::new(0);
+        let pool = Mutex::new(pool);
+        rayon::scope(|scope| {
+            for _ in 0..workers {
+                scope.spawn(|_| {
+                    loop {
+                        let i = next.fetch_add(1, Ordering::Relaxed);
+                        if i >= n_jobs {
+                            break;
+                        }
+                        let mut job = lock(&jobs[i]);
+                        job.sims = {
+                            let mut p = lock(&pool);
+                            (0..views.len()).map_while(|_| p.pop()).collect()
+                        };
+                        let mut r = StepReport::default();
+                        let had_evidence = job.update(views, &mut r);
+                        lock(&pool).append(&mut job.sims);
+                        *lock(&results[i]) = Some((r, had_evidence));
+                    }
+                });
             }
-            let results: Vec<(StepReport, bool)> = wave
-                .par_iter_mut()
-                .with_max_len(1)
-                .map(|job| {
-                    let mut r = StepReport::default();
-                    let had_evidence = job.update(views, &mut r);
-                    (r, had_evidence)
-                })
-                .collect();
-            for job in wave.iter_mut() {
-                pool.append(&mut job.sims);
-            }
-            done.extend(results);
-        }
+        });
         drop(jobs);
-        self.sims = pool;
+        self.sims = pool.into_inner().unwrap_or_else(|p| p.into_inner());
+        let done: Vec<(StepReport, bool)> = results
+            .into_iter()
+            .map(|r| {
+                r.into_inner()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .expect("every track is updated")
+            })
+            .collect();
         for (ti, (r, had_evidence)) in order.into_iter().zip(done) {
             report.absorb(r);
             self.finish_update(ti, had_evidence, report);
@@ -1164,6 +1183,11 @@ fn unmatched_mass(
         }
     }
     (mass, total)
+}
+
+/// A mutex's guard, also after a panic elsewhere (the data is a track's own update).
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 #[cfg(test)]
