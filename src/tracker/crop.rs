@@ -391,34 +391,138 @@ pub fn denoise_depth(layout: &FeatureLayout, x: &mut [f32], mask: &[bool]) {
     let f = layout.feature_px;
     if let Some(r) = denoise_radius(layout, x, mask) {
         let src = x[..f * f].to_vec();
-        let mut win: Vec<f32> = Vec::with_capacity(((2 * r + 1) * (2 * r + 1)) as usize);
-        for i in 0..f as i64 {
-            for j in 0..f as i64 {
-                let k = (i * f as i64 + j) as usize;
-                if mask[k] {
-                    continue;
-                }
-                win.clear();
-                for di in -r..=r {
-                    for dj in -r..=r {
-                        let (a, b) = (i + di, j + dj);
-                        if a >= 0 && b >= 0 && a < f as i64 && b < f as i64 {
-                            let kk = (a * f as i64 + b) as usize;
-                            if !mask[kk] {
-                                win.push(src[kk]);
-                            }
-                        }
-                    }
-                }
-                let m = win.len() / 2;
-                win.select_nth_unstable_by(m, f32::total_cmp);
-                x[k] = win[m];
-            }
-        }
+        median_filter(&src, mask, f, r as usize, x);
     }
     for v in x[..f * f].iter_mut() {
         *v = v.clamp(0.0, 1.0);
     }
+}
+
+/// The median of the valid cells in each valid cell's `(2r + 1)^2` window (the upper one of an
+/// even count, in `f32::total_cmp`'s order), written to `out`: a row at a time, every cell of
+/// the row a lane of one sorting network over its window, on the integer keys of that order,
+/// masked and outside cells entering as the largest key, so that a lane's median sits at half
+/// its count of valid cells.
+fn median_filter(src: &[f32], mask: &[bool], f: usize, r: usize, out: &mut [f32]) {
+    // f32::total_cmp's key: an involution of the bits
+    let key = |b: i32| b ^ ((((b >> 31) as u32) >> 1) as i32);
+    let side = 2 * r + 1;
+    let net = batcher_network((side * side).next_power_of_two());
+    let mut v = vec![i32::MAX; net.width * f];
+    let mut count = vec![0usize; f];
+    for i in 0..f {
+        v.fill(i32::MAX);
+        count.fill(0);
+        for (t, (a, b)) in (0..side).flat_map(|a| (0..side).map(move |b| (a, b))).enumerate() {
+            // the window's cell (i + a - r, j + b - r) of every lane j
+            let Some(row) = (i + a).checked_sub(r).filter(|row| *row < f) else {
+                continue;
+            };
+            let lane = &mut v[t * f..(t + 1) * f];
+            for j in r.saturating_sub(b)..(f + r).saturating_sub(b).min(f) {
+                let k = row * f + j + b - r;
+                if !mask[k] {
+                    lane[j] = key(src[k].to_bits() as i32);
+                    count[j] += 1;
+                }
+            }
+        }
+        sort_lanes(&net.pairs, &mut v, f);
+        for j in 0..f {
+            let k = i * f + j;
+            if !mask[k] {
+                out[k] = f32::from_bits(key(v[(count[j] / 2) * f + j]) as u32);
+            }
+        }
+    }
+}
+
+/// Runs the network `pairs` on `v`, `f` lanes per input (input `t` at `v[t * f..(t + 1) * f]`),
+/// with the widest integer min and max the CPU has.
+fn sort_lanes(pairs: &[(u16, u16)], v: &mut [i32], f: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx512f") {
+            // SAFETY: AVX-512F is present (checked above); the function is safe Rust compiled
+            // for it, every access bounds-checked.
+            #[allow(unsafe_code)] // see Cargo.toml's lints
+            unsafe {
+                sort_lanes_avx512(pairs, v, f)
+            };
+            return;
+        }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: AVX2 is present (checked above); as above.
+            #[allow(unsafe_code)] // see Cargo.toml's lints
+            unsafe {
+                sort_lanes_avx2(pairs, v, f)
+            };
+            return;
+        }
+    }
+    sort_lanes_generic(pairs, v, f);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+fn sort_lanes_avx512(pairs: &[(u16, u16)], v: &mut [i32], f: usize) {
+    sort_lanes_generic(pairs, v, f);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn sort_lanes_avx2(pairs: &[(u16, u16)], v: &mut [i32], f: usize) {
+    sort_lanes_generic(pairs, v, f);
+}
+
+#[inline(always)]
+fn sort_lanes_generic(pairs: &[(u16, u16)], v: &mut [i32], f: usize) {
+    for &(p, q) in pairs {
+        let (lo, hi) = v.split_at_mut(q as usize * f);
+        let a = &mut lo[p as usize * f..(p as usize + 1) * f];
+        let b = &mut hi[..f];
+        for (x, y) in a.iter_mut().zip(b.iter_mut()) {
+            let (s, t) = (*x, *y);
+            *x = s.min(t);
+            *y = s.max(t);
+        }
+    }
+}
+
+/// A sorting network (Batcher's odd-even merge sort) of `width` inputs, a power of two:
+/// compare-exchanges `(p, q)`, `p < q`, in order.
+struct SortingNetwork {
+    width: usize,
+    pairs: Vec<(u16, u16)>,
+}
+
+/// The network of `width` inputs, built once per width.
+fn batcher_network(width: usize) -> &'static SortingNetwork {
+    static NETWORKS: std::sync::OnceLock<Vec<SortingNetwork>> = std::sync::OnceLock::new();
+    let nets = NETWORKS.get_or_init(|| (0..=6).map(|e| build_batcher(1 << e)).collect());
+    &nets[width.trailing_zeros() as usize]
+}
+
+fn build_batcher(n: usize) -> SortingNetwork {
+    let mut pairs = Vec::new();
+    let mut p = 1;
+    while p < n {
+        let mut k = p;
+        while k >= 1 {
+            let mut j = k % p;
+            while j + k < n {
+                for i in 0..k.min(n - j - k) {
+                    if (i + j) / (2 * p) == (i + j + k) / (2 * p) {
+                        pairs.push(((i + j) as u16, (i + j + k) as u16));
+                    }
+                }
+                j += 2 * k;
+            }
+            k /= 2;
+        }
+        p *= 2;
+    }
+    SortingNetwork { width: n, pairs }
 }
 
 /// Fills masked depth cells that are holes (valid on at least three of four sides, a few
@@ -1148,6 +1252,105 @@ mod tests {
         }
         let (layout, truth, _) = block_cells(0.0, 5);
         assert!(depth_noise_sigma(&layout, &truth, &[false; 1024]).unwrap() < 0.01);
+    }
+
+    /// The median filter as it was written first: a selection per cell.
+    fn median_filter_reference(src: &[f32], mask: &[bool], f: usize, r: i64, out: &mut [f32]) {
+        let mut win: Vec<f32> = Vec::new();
+        for i in 0..f as i64 {
+            for j in 0..f as i64 {
+                let k = (i * f as i64 + j) as usize;
+                if mask[k] {
+                    continue;
+                }
+                win.clear();
+                for di in -r..=r {
+                    for dj in -r..=r {
+                        let (a, b) = (i + di, j + dj);
+                        if a >= 0 && b >= 0 && a < f as i64 && b < f as i64 {
+                            let kk = (a * f as i64 + b) as usize;
+                            if !mask[kk] {
+                                win.push(src[kk]);
+                            }
+                        }
+                    }
+                }
+                let m = win.len() / 2;
+                win.select_nth_unstable_by(m, f32::total_cmp);
+                out[k] = win[m];
+            }
+        }
+    }
+
+    #[test]
+    fn batcher_networks_sort() {
+        use rand::Rng;
+        // every binary input of 16 (the 0-1 principle) and random inputs of 32 and 64
+        let net = build_batcher(16);
+        for bits in 0u32..1 << 16 {
+            let mut v: Vec<u8> = (0..16).map(|b| ((bits >> b) & 1) as u8).collect();
+            for &(p, q) in &net.pairs {
+                if v[q as usize] < v[p as usize] {
+                    v.swap(p as usize, q as usize);
+                }
+            }
+            assert!(v.windows(2).all(|w| w[0] <= w[1]), "{bits:b}");
+        }
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+        for n in [1usize, 2, 4, 8, 32, 64] {
+            let net = build_batcher(n);
+            for _ in 0..2000 {
+                let mut v: Vec<i32> = (0..n).map(|_| rng.random_range(0..20)).collect();
+                for &(p, q) in &net.pairs {
+                    if v[q as usize] < v[p as usize] {
+                        v.swap(p as usize, q as usize);
+                    }
+                }
+                assert!(v.windows(2).all(|w| w[0] <= w[1]), "n {n}");
+            }
+        }
+    }
+
+    #[test]
+    fn sorting_lanes_is_the_same_on_every_instruction_set() {
+        use rand::Rng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        for (width, f) in [(16usize, 32usize), (32, 32), (32, 7), (16, 1)] {
+            let net = build_batcher(width);
+            let v: Vec<i32> = (0..width * f).map(|_| rng.random_range(-50..50)).collect();
+            let (mut a, mut b) = (v.clone(), v);
+            sort_lanes(&net.pairs, &mut a, f);
+            sort_lanes_generic(&net.pairs, &mut b, f);
+            assert_eq!(a, b);
+            for j in 0..f {
+                assert!((1..width).all(|t| a[(t - 1) * f + j] <= a[t * f + j]));
+            }
+        }
+    }
+
+    #[test]
+    fn median_filter_is_the_selection_per_cell() {
+        use rand::Rng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(17);
+        for trial in 0..400 {
+            let f = [32usize, 8, 4, 3, 1][trial % 5];
+            let r = 1 + trial % 2;
+            let holes = [0.0, 0.1, 0.5, 0.95][trial % 4];
+            let src: Vec<f32> = (0..f * f)
+                .map(|_| {
+                    let v = rng.random_range(-3.0f32..4.0);
+                    // quantised so that windows hold ties
+                    if trial % 3 == 0 { (v * 4.0).round() / 4.0 } else { v }
+                })
+                .collect();
+            let mask: Vec<bool> = (0..f * f).map(|_| rng.random_bool(holes)).collect();
+            let mut want = vec![f32::NAN; f * f];
+            let mut got = vec![f32::NAN; f * f];
+            median_filter_reference(&src, &mask, f, r as i64, &mut want);
+            median_filter(&src, &mask, f, r, &mut got);
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&got), bits(&want), "trial {trial}: f {f}, r {r}");
+        }
     }
 
     #[test]

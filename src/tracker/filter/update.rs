@@ -695,17 +695,25 @@ impl TrackUpdate<'_> {
         // per view: the registered position and its information, both in the reference frame
         let mut fits: Vec<(Vector3<f64>, Matrix3<f64>)> = Vec::new();
         let mut fresh: Vec<super::CarriedFit> = Vec::new();
-        for (frame, view_from_ref, _) in views.iter().filter(|v| seen_by.contains(&v.0.camera)) {
-            let pose = view_from_ref * Pose::from_parts(mean_ref, q);
-            let Some(reg) = crate::tracker::register::register_translation(
-                &model.mesh,
-                &frame.intrinsics,
-                &frame.depth,
-                &pose,
-                diameter_m,
-                &rotation_cov,
-                &cfg,
-            ) else {
+        // the views' fits are independent: side by side, taken in view order
+        let seen: Vec<&(&CameraFrame, Pose, usize)> = views.iter().filter(|v| seen_by.contains(&v.0.camera)).collect();
+        let regs: Vec<_> = seen
+            .par_iter()
+            .map(|(frame, view_from_ref, _)| {
+                let pose = view_from_ref * Pose::from_parts(mean_ref, q);
+                crate::tracker::register::register_translation(
+                    &model.mesh,
+                    &frame.intrinsics,
+                    &frame.depth,
+                    &pose,
+                    diameter_m,
+                    &rotation_cov,
+                    &cfg,
+                )
+            })
+            .collect();
+        for ((frame, view_from_ref, _), reg) in seen.into_iter().zip(regs) {
+            let Some(reg) = reg else {
                 continue;
             };
             let r = view_from_ref.rotation.inverse().to_rotation_matrix();
