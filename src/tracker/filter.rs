@@ -118,8 +118,9 @@ pub struct TrackerConfig {
     /// until the evidence against it outweighs the move. 0: off.
     #[serde(default)]
     pub turn_share: f64,
-    /// A turn by 90 or 180 degrees about an object axis is near-symmetric when it moves the
-    /// mesh's surface by less than this share of the object's diameter on average.
+    /// A turn by 90 or 180 degrees about an object axis, or the best half turn about any axis,
+    /// is near-symmetric when it moves the mesh's surface by less than this share of the
+    /// object's diameter on average (`symmetry::near_symmetric_turns`).
     #[serde(default = "default_turn_max_distance_rel")]
     pub turn_max_distance_rel: f64,
     pub seed: u64,
