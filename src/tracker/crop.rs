@@ -438,41 +438,12 @@ fn median_filter(src: &[f32], mask: &[bool], f: usize, r: usize, out: &mut [f32]
 }
 
 /// Runs the network `pairs` on `v`, `f` lanes per input (input `t` at `v[t * f..(t + 1) * f]`),
-/// with the widest integer min and max the CPU has.
+/// compiled for the widest integer min and max the CPU has (the same result on each).
 fn sort_lanes(pairs: &[(u16, u16)], v: &mut [i32], f: usize) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx512f") {
-            // SAFETY: AVX-512F is present (checked above); the function is safe Rust compiled
-            // for it, every access bounds-checked.
-            #[allow(unsafe_code)] // see Cargo.toml's lints
-            unsafe {
-                sort_lanes_avx512(pairs, v, f)
-            };
-            return;
-        }
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: AVX2 is present (checked above); as above.
-            #[allow(unsafe_code)] // see Cargo.toml's lints
-            unsafe {
-                sort_lanes_avx2(pairs, v, f)
-            };
-            return;
-        }
-    }
-    sort_lanes_generic(pairs, v, f);
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-fn sort_lanes_avx512(pairs: &[(u16, u16)], v: &mut [i32], f: usize) {
-    sort_lanes_generic(pairs, v, f);
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn sort_lanes_avx2(pairs: &[(u16, u16)], v: &mut [i32], f: usize) {
-    sort_lanes_generic(pairs, v, f);
+    crate::tracker::bins::with_wide_simd(
+        #[inline(always)]
+        || sort_lanes_generic(pairs, v, f),
+    );
 }
 
 #[inline(always)]
