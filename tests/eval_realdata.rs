@@ -172,11 +172,14 @@ fn mug_truth_places(out: &SequenceOutcome) -> Vec<TruthPlace> {
         .collect()
 }
 
-/// Issue 19 on real data: the reported translation regions hold the truth. Over the eight
-/// seeds' 80 frames the truth lies in the 90 % region in at least 90 % of them. Measured with
-/// the default spread floor (4 mm + 0.6 % of the range): 80 of 80, median region 28 cm^3;
-/// with a quarter of it (fitted on generated sequences, whose errors are half the real
-/// clip's 0.5-1.3 cm) 50 of 80 at 4.8 cm^3, missing the truth in most frames after the fourth.
+/// Issue 19 on real data: the reported translation regions hold the truth as often as they
+/// say. Over the eight seeds' 80 frames the truth lies in the 90 % region in 80 % to 97 % of
+/// them (issue 19's band; a calibrated region holds 72 of 80 on average, fewer than 64 in
+/// 0.2 % of draws of independent frames, 70 or fewer in 28 %). Measured with the default
+/// settings: 70 of 80, median region 2.6 cm^3 (72 of 80 at 2.4 cm^3 without turn mixing,
+/// missing other frames). A quarter of the spread floor (fitted on generated sequences, whose
+/// errors are half the real clip's 0.5-1.3 cm) held 50 of 80, missing the truth in most frames
+/// after the fourth.
 #[test]
 fn real_mug_translation_regions_hold_the_truth() {
     let places: Vec<TruthPlace> = default_clips().iter().flat_map(mug_truth_places).collect();
@@ -196,8 +199,9 @@ fn real_mug_translation_regions_hold_the_truth() {
         places.len(),
         volumes_cm3[volumes_cm3.len() / 2]
     );
+    let share = held / places.len() as f64;
     assert!(
-        held >= 0.9 * places.len() as f64,
+        (0.8..=0.97).contains(&share),
         "the truth in the 90 % translation region in {held:.1} of {} frames",
         places.len()
     );
