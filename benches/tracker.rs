@@ -18,7 +18,8 @@
 //! also times the dense reference, every bin matched and kept). Mesh:
 //! `PREGRASP_BENCH_MESH` (default the YCB cracker box from the shared folder, else the
 //! built-in box). The peak resident memory after four steps tracking one object is printed
-//! before the reference GEMM allocates its output.
+//! before the reference GEMM allocates its output. `PREGRASP_BENCH_TRACKER_CONFIG` names a JSON
+//! file of tracker settings over the defaults (as `eval --tracker-config`).
 
 use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
@@ -307,9 +308,19 @@ fn cameras() -> BTreeMap<String, CameraMount> {
     cams
 }
 
+/// The tracker's settings: the defaults, or a JSON file of settings over them named by
+/// `PREGRASP_BENCH_TRACKER_CONFIG` (as `eval --tracker-config`), to time other settings.
+fn tracker_config() -> TrackerConfig {
+    match std::env::var_os("PREGRASP_BENCH_TRACKER_CONFIG") {
+        Some(path) => pregrasp::eval::cli::tracker_config_from_file(std::path::Path::new(&path))
+            .unwrap_or_else(|e| panic!("tracker config: {e}")),
+        None => TrackerConfig::default(),
+    }
+}
+
 /// A tracker over the bench's cameras with the object model and no track yet.
 fn fresh_tracker(cb: &Arc<Codebook>) -> Tracker {
-    let mut t = Tracker::new(TrackerConfig::default(), cameras(), "robot".into());
+    let mut t = Tracker::new(tracker_config(), cameras(), "robot".into());
     t.add_object_model("obj", mesh(), cb.clone());
     t
 }
