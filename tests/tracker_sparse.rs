@@ -97,9 +97,8 @@ fn sparse_and_dense_steps_give_the_same_answer() {
     assert!(ea < 20.0 && eb < 20.0, "sparse {ea:.1} and dense {eb:.1} degrees");
     // the truth's log-likelihood agrees within a nat, or favours the sparse step
     assert!(la > lb - 1.0, "sparse {la:.2} vs dense {lb:.2}");
-    // the converged state holds a small share of the grid: 6,855 of 24,624 bins, 2,710 without
-    // turn mixing (each of the box's near-symmetric turns holds a copy of the mode)
-    assert!(active < grid / 3, "{active} of {grid} bins active");
+    // the converged state holds a small share of the grid
+    assert!(active < grid / 4, "{active} of {grid} bins active");
     assert_eq!(sparse.tracks()[0].status, TrackStatus::Tracking);
 }
 

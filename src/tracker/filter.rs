@@ -248,7 +248,7 @@ impl Default for TrackerConfig {
             recovery: RecoveryConfig::default(),
             verification: VerificationConfig::default(),
             registration: RegistrationConfig::default(),
-            turn_share: 0.02,
+            turn_share: 0.0,
             turn_max_distance_rel: default_turn_max_distance_rel(),
             seed: 1,
         }
