@@ -311,11 +311,7 @@ fn cameras() -> BTreeMap<String, CameraMount> {
 /// The tracker's settings: the defaults, or a JSON file of settings over them named by
 /// `PREGRASP_BENCH_TRACKER_CONFIG` (as `eval --tracker-config`), to time other settings.
 fn tracker_config() -> TrackerConfig {
-    match std::env::var_os("PREGRASP_BENCH_TRACKER_CONFIG") {
-        Some(path) => pregrasp::eval::cli::tracker_config_from_file(std::path::Path::new(&path))
-            .unwrap_or_else(|e| panic!("tracker config: {e}")),
-        None => TrackerConfig::default(),
-    }
+    pregrasp::eval::cli::tracker_config_from_env("PREGRASP_BENCH_TRACKER_CONFIG").unwrap_or_else(|e| panic!("{e}"))
 }
 
 /// A tracker over the bench's cameras with the object model and no track yet.

@@ -37,12 +37,7 @@ fn real_sequence() -> Sequence {
 /// `PREGRASP_REAL_TRACKER_CONFIG` (to judge other settings by the real clip, as `eval
 /// --tracker-config` judges them by generated sequences).
 fn tracker_config() -> TrackerConfig {
-    match std::env::var_os("PREGRASP_REAL_TRACKER_CONFIG") {
-        Some(path) => {
-            pregrasp::eval::cli::tracker_config_from_file(std::path::Path::new(&path)).expect("tracker config")
-        }
-        None => TrackerConfig::default(),
-    }
+    pregrasp::eval::cli::tracker_config_from_env("PREGRASP_REAL_TRACKER_CONFIG").expect("tracker config")
 }
 
 fn evaluate_real_clip_with(codebook: CodebookConfig) -> SequenceOutcome {

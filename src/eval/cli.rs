@@ -135,6 +135,15 @@ pub fn tracker_config_from_file(path: &std::path::Path) -> anyhow::Result<Tracke
     tracker_config_with(&v)
 }
 
+/// The defaults, or [`tracker_config_from_file`] of the file the environment variable `var`
+/// names: how a test or a bench is run with other tracker settings.
+pub fn tracker_config_from_env(var: &str) -> anyhow::Result<TrackerConfig> {
+    match std::env::var_os(var) {
+        Some(path) => tracker_config_from_file(std::path::Path::new(&path)),
+        None => Ok(TrackerConfig::default()),
+    }
+}
+
 impl Args {
     /// The run's configuration.
     pub fn config(&self) -> anyhow::Result<EvalConfig> {
