@@ -119,6 +119,11 @@ pub enum RuleQuantity {
     /// [`RuleQuantity::CalibratedLower`] chosen with maps fitted on part of the data does not
     /// carry over to the map fitted on all of it).
     CalibratedAtRawLower,
+    /// The raw sampled rate itself (smoothed as the served answer is). The map is monotone, so
+    /// a threshold on the raw rate is one on the calibrated probability, placed anywhere rather
+    /// than only at the steps between the map's blocks, and it does not move with the map:
+    /// judged on out-of-fold answers, it grasps on the same answers as on the map fitted on all.
+    Raw,
 }
 
 /// When an answer is `grasp`: `quantity >= threshold` in `run_length` successive answers about
@@ -142,13 +147,13 @@ impl Default for GraspRule {
 }
 
 impl GraspRule {
-    /// The value of the rule's quantity; `p_at_raw_lower` gives the calibrated probability of
-    /// `ci95_raw[0]` (read only by [`RuleQuantity::CalibratedAtRawLower`]).
+    /// The value of the rule's quantity for an answer calibrated to `(p, ci95)` from the raw
+    /// rate and interval `(p_raw, ci95_raw)`; `p_at_raw_lower` gives the calibrated probability
+    /// of `ci95_raw[0]` (read only by [`RuleQuantity::CalibratedAtRawLower`]).
     pub fn quantity_value(
         &self,
-        p: f64,
-        ci95: [f64; 2],
-        ci95_raw: [f64; 2],
+        (p, ci95): (f64, [f64; 2]),
+        (p_raw, ci95_raw): (f64, [f64; 2]),
         p_at_raw_lower: impl FnOnce() -> f64,
     ) -> f64 {
         match self.quantity {
@@ -156,13 +161,19 @@ impl GraspRule {
             RuleQuantity::CalibratedLower => ci95[0],
             RuleQuantity::RawLower => ci95_raw[0],
             RuleQuantity::CalibratedAtRawLower => p_at_raw_lower(),
+            RuleQuantity::Raw => p_raw,
         }
     }
 
     /// Whether one answer's quantity reaches the threshold (see [`GraspRule::quantity_value`];
     /// the run is counted by the caller).
-    pub fn admits(&self, p: f64, ci95: [f64; 2], ci95_raw: [f64; 2], p_at_raw_lower: impl FnOnce() -> f64) -> bool {
-        self.quantity_value(p, ci95, ci95_raw, p_at_raw_lower) >= self.threshold
+    pub fn admits(
+        &self,
+        calibrated: (f64, [f64; 2]),
+        raw: (f64, [f64; 2]),
+        p_at_raw_lower: impl FnOnce() -> f64,
+    ) -> bool {
+        self.quantity_value(calibrated, raw, p_at_raw_lower) >= self.threshold
     }
 }
 
@@ -569,16 +580,19 @@ impl Calibration {
         self.map().map_or(raw, |m| m.apply(raw, translation_std_m))
     }
 
-    /// The value of `rule`'s quantity for an answer calibrated to `p`, `ci95` from the raw
-    /// interval `ci95_raw` of a track of translation spread `translation_std_m`.
+    /// The value of `rule`'s quantity for an answer calibrated to `(p, ci95)` from the raw
+    /// rate and interval `(p_raw, ci95_raw)` of a track of translation spread
+    /// `translation_std_m`.
     pub fn rule_value(
         &self,
         rule: &GraspRule,
-        (p, ci95): (f64, [f64; 2]),
-        ci95_raw: [f64; 2],
+        calibrated: (f64, [f64; 2]),
+        (p_raw, ci95_raw): (f64, [f64; 2]),
         translation_std_m: Option<f64>,
     ) -> f64 {
-        rule.quantity_value(p, ci95, ci95_raw, || self.at(ci95_raw[0], translation_std_m))
+        rule.quantity_value(calibrated, (p_raw, ci95_raw), || {
+            self.at(ci95_raw[0], translation_std_m)
+        })
     }
 
     /// (p_success, ci95, status) of a raw rate and its interval, for a track of translation
@@ -775,7 +789,7 @@ impl AnswerSmoother {
             None => (p_raw, ci95_raw, spread_now, 0),
         };
         let (pc, cic, _) = calibration.calibrate(p, ci, spread);
-        let value = calibration.rule_value(rule, (pc, cic), ci, spread);
+        let value = calibration.rule_value(rule, (pc, cic), (p, ci), spread);
         let run = if value >= rule.threshold { run_before + 1 } else { 0 };
         self.latest = Some(Smoothed {
             stamp_ns,
@@ -938,9 +952,12 @@ mod tests {
         let ci_raw = [0.9, 0.95];
         let tight = cal.at(ci_raw[0], Some(0.003));
         let loose = cal.at(ci_raw[0], Some(0.02));
-        assert!(rule.admits(0.0, [0.0, 1.0], ci_raw, || tight));
-        assert!(!rule.admits(1.0, [1.0, 1.0], ci_raw, || loose));
-        assert_eq!(cal.rule_value(&rule, (0.0, [0.0, 1.0]), ci_raw, Some(0.003)), tight);
+        assert!(rule.admits((0.0, [0.0, 1.0]), (0.92, ci_raw), || tight));
+        assert!(!rule.admits((1.0, [1.0, 1.0]), (0.92, ci_raw), || loose));
+        assert_eq!(
+            cal.rule_value(&rule, (0.0, [0.0, 1.0]), (0.92, ci_raw), Some(0.003)),
+            tight
+        );
         // and the smoother carries the spread along with the rate: 2 mm, then 2 cm one time
         // constant later
         let mut s = AnswerSmoother::new(1.0);
@@ -1162,5 +1179,41 @@ mod tests {
             .map(|(i, &p)| s.update(i as i64 * 100_000_000, (p, [p, p]), None, &cal, &rule).grasp)
             .collect();
         assert_eq!(grasp, [false, false, false, false, false, true, true]);
+    }
+
+    #[test]
+    fn a_rule_on_the_raw_rate_reads_the_smoothed_rate_between_the_maps_steps() {
+        // one block maps every raw rate from 0.5 up to 0.99: a calibrated threshold can only
+        // take all of them or none, the raw rate's threshold splits them
+        let mut m = map_of(
+            vec![block(0.0, 0.5, 100, 10), block(0.5, 1.0, 100, 99)],
+            calibrated_rule(0.95, 1),
+            0.5,
+        );
+        m.rule = GraspRule {
+            quantity: RuleQuantity::Raw,
+            threshold: 0.94,
+            run_length: 1,
+        };
+        let cal = Calibration::Fitted(Arc::new(m));
+        let rule = cal.rule();
+        let answer = |raws: &[f64]| {
+            let mut s = cal.smoother();
+            let mut last = None;
+            for (i, &p) in raws.iter().enumerate() {
+                last = Some(s.update(i as i64 * 100_000_000, (p, [p - 0.02, p]), None, &cal, &rule));
+            }
+            last.expect("an answer")
+        };
+        let steady = answer(&[0.95; 20]);
+        assert!(steady.grasp && (steady.rule_value - 0.95).abs() < 1e-9, "{steady:?}");
+        let below = answer(&[0.93; 20]);
+        assert!(!below.grasp && below.p_success > 0.95, "{below:?}");
+        // the value is the smoothed raw rate, not this answer's own: one high answer after a
+        // low run does not grasp
+        let mut raws = vec![0.6; 20];
+        raws.push(0.99);
+        let jump = answer(&raws);
+        assert!(!jump.grasp && jump.rule_value < 0.94 && jump.rule_value == jump.p_success_raw);
     }
 }

@@ -662,7 +662,7 @@ pub fn decide_calibrated(
     let offsets = offsets_in_gripper(&eval.reference_from_gripper, estimate, poses);
     let frames = (&eval.reference_from_gripper, &grasp.object_from_gripper);
     let reasons = reasons(&eval.outcomes, &offsets, frames);
-    let rule_value = calibration.rule_value(&rule, (p, ci95), ci95_raw, spread);
+    let rule_value = calibration.rule_value(&rule, (p, ci95), (p_raw, ci95_raw), spread);
     let failed: Vec<bool> = eval.outcomes.iter().map(|o| !o.success()).collect();
     let mut uncertainty = axis_drivers(&failed, &offsets, frames);
     uncertainty.sort_by(|a, b| b.failure_dependence.total_cmp(&a.failure_dependence));

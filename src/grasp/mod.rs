@@ -47,7 +47,8 @@
 //! The rule (`calibrated.rs`): the raw rate is smoothed over the last answers about the track
 //! (time constant of the map), put through a monotone map fitted on generated sequences
 //! (isotonic regression of the outcome on the true pose), and `grasp` is answered when the
-//! calibrated probability (or its lower bound) clears the rule's threshold in a run of answers.
+//! rule's quantity (the smoothed raw rate, the calibrated probability or a bound) clears its
+//! threshold in a run of answers.
 //! The map, its time constant and its rule are chosen by `pregrasp calibrate` (README, "The
 //! grasp rule").
 //!
