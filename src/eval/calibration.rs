@@ -5,7 +5,7 @@
 //! reach; and per approach (one sequence's target) the first `grasp`: where it came and
 //! whether it fails on the truth, with a Wilson upper bound on the per-approach failure rate.
 
-use super::report::{DecisionBlock, FirstGrasp, ReliabilityBin};
+use super::report::{DecisionBlock, FirstGrasp, ObjectDecisions, ReliabilityBin};
 use crate::grasp::Gripper;
 use crate::grasp::calibration::{CalibrationRecord, calibration_report, wilson_upper_95};
 use crate::tracker::{CodebookConfig, TrackerConfig};
@@ -196,7 +196,20 @@ pub fn summarise(outcomes: &[DecisionOutcome], threshold: f64) -> Option<Decisio
     let objects: std::collections::BTreeSet<&str> = outcomes.iter().map(|o| o.object.as_str()).collect();
     let mut ece_by_object = BTreeMap::new();
     let mut ece_leave_one_object_out = BTreeMap::new();
+    let mut by_object = BTreeMap::new();
     for obj in &objects {
+        let own: Vec<DecisionOutcome> = outcomes.iter().filter(|o| o.object == *obj).cloned().collect();
+        let (recall, recall_frames) = recall(&own);
+        by_object.insert(
+            obj.to_string(),
+            ObjectDecisions {
+                frames: own.len(),
+                n_grasp: own.iter().filter(|o| o.grasp).count(),
+                failing_grasps: own.iter().filter(|o| o.grasp && !o.success).count(),
+                recall,
+                recall_frames,
+            },
+        );
         ece_by_object.insert(
             obj.to_string(),
             calibration_report(&records(outcomes.iter().filter(|o| o.object == *obj))).ece,
@@ -253,6 +266,7 @@ pub fn summarise(outcomes: &[DecisionOutcome], threshold: f64) -> Option<Decisio
         median_first_grasp_distance_m,
         first_grasp,
         reliability_png: None,
+        by_object,
     })
 }
 
@@ -376,6 +390,14 @@ mod tests {
         assert_relative_eq!(b.ece_leave_one_object_out["mug"], 0.0, epsilon = 1e-12);
         assert_relative_eq!(b.ece_leave_one_object_out["can"], 0.9, epsilon = 1e-12);
         assert_relative_eq!(b.ece, 0.45, epsilon = 1e-12);
+        // the mug's two answers are its grasps, both failing; the can never grasped
+        assert_eq!((b.by_object["mug"].n_grasp, b.by_object["mug"].failing_grasps), (2, 2));
+        assert_eq!((b.by_object["can"].n_grasp, b.by_object["can"].frames), (0, 2));
+        assert_eq!(
+            (b.by_object["can"].recall, b.by_object["can"].recall_frames),
+            (Some(0.0), 1)
+        );
+        assert_eq!(b.by_object["mug"].recall, None);
     }
 
     #[test]

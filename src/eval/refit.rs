@@ -812,6 +812,20 @@ fn print_set(name: &str, r: &SetReport) {
         s.first_grasp_failure_upper_95,
         f(s.median_first_grasp_distance_m),
     );
+    let per_object: Vec<String> = s
+        .by_object
+        .iter()
+        .map(|(name, o)| {
+            format!(
+                "{name} recall {} of {}, {} of {} grasps failing",
+                f(o.recall),
+                o.recall_frames,
+                o.failing_grasps,
+                o.n_grasp
+            )
+        })
+        .collect();
+    println!("  served per object: {}", per_object.join("; "));
     let b = &r.before;
     println!(
         "  before (raw, Wilson lower >= 0.9): ECE {:.4}, Brier {:.4}, grasp rate {:.4}, false grasp rate {}, recall {}, first grasp in {} of {}, fails in {}",

@@ -399,6 +399,21 @@ pub struct DecisionBlock {
     /// The reliability diagram beside `results.json`.
     #[serde(default)]
     pub reliability_png: Option<String>,
+    /// Per object: its `grasp` answers, how many fail, and its recall within reach.
+    #[serde(default)]
+    pub by_object: BTreeMap<String, ObjectDecisions>,
+}
+
+/// One object's share of a [`DecisionBlock`]: where the `grasp` answers and the recall come
+/// from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ObjectDecisions {
+    pub frames: usize,
+    pub n_grasp: usize,
+    /// `grasp` answers whose grasp fails on the true pose.
+    pub failing_grasps: usize,
+    pub recall: Option<f64>,
+    pub recall_frames: usize,
 }
 
 /// The first `grasp` of one approach (sequence and object).
