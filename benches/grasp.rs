@@ -13,8 +13,6 @@ use nalgebra::{Translation3, UnitQuaternion, Vector3};
 use pregrasp::geometry::{Pose, PoseSamples};
 use pregrasp::grasp::{DecisionQuery, Grasp, GraspObject, Gripper, SupportPlane, decide};
 use pregrasp::mesh::Mesh;
-use rand::SeedableRng;
-use rand_distr::{Distribution, Normal};
 use std::hint::black_box;
 use std::path::{Path, PathBuf};
 
@@ -22,25 +20,6 @@ fn shared() -> PathBuf {
     match std::env::var("PREGRASP_SHARED") {
         Ok(p) => PathBuf::from(p),
         Err(_) => Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"),
-    }
-}
-
-fn samples(estimate: &Pose, n: usize) -> PoseSamples {
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-    let std = Normal::new(0.0, 1.0).expect("unit normal");
-    let poses = (0..n)
-        .map(|_| {
-            let t = Vector3::from_fn(|_, _| std.sample(&mut rng) * 0.01);
-            let r = Vector3::from_fn(|_, _| std.sample(&mut rng) * 0.05);
-            Pose::from_parts(
-                Translation3::from(estimate.translation.vector + t),
-                UnitQuaternion::from_scaled_axis(r) * estimate.rotation,
-            )
-        })
-        .collect();
-    PoseSamples {
-        poses,
-        effective_sample_size: n as f64,
     }
 }
 
@@ -129,7 +108,7 @@ fn bench<M: Measurement>(c: &mut BenchmarkGroup<'_, M>) {
         let object = GraspObject::new(&mesh).expect("solid");
         let (lo, _) = object.extent_along(&Vector3::z());
         let estimate = Pose::from_parts(Translation3::new(0.6, 0.1, -lo), UnitQuaternion::identity());
-        let s = samples(&estimate, 1000);
+        let s = PoseSamples::gaussian(&estimate, [0.01; 3], [0.05; 3], 1000, 1);
         let grasp = Grasp::new(&object, &-Vector3::z(), &Vector3::x(), 0.03, "top").expect("grasp");
         let query = DecisionQuery {
             n_samples: 1000,

@@ -16,31 +16,9 @@ use nalgebra::{Translation3, UnitQuaternion, Vector3};
 use pregrasp::geometry::{Pose, PoseSamples};
 use pregrasp::grasp::{Decision, DecisionQuery, Grasp, GraspObject, Gripper, SupportPlane, decide};
 use pregrasp::mesh::Mesh;
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, Normal};
 
 /// (translation std in m, rotation std in rad) of the samples.
 const NOISE: [(f64, f64); 5] = [(0.0, 0.0), (0.003, 0.0), (0.0, 0.0524), (0.005, 0.0873), (0.01, 0.1745)];
-
-fn samples(truth: &Pose, t_std_m: f64, r_std_rad: f64) -> PoseSamples {
-    let mut rng = ChaCha8Rng::seed_from_u64(1);
-    let unit = Normal::new(0.0, 1.0).expect("unit normal");
-    let poses = (0..1000)
-        .map(|_| {
-            let dt = Vector3::from_fn(|_, _| unit.sample(&mut rng) * t_std_m);
-            let dr = Vector3::from_fn(|_, _| unit.sample(&mut rng) * r_std_rad);
-            Pose::from_parts(
-                Translation3::from(truth.translation.vector + dt),
-                UnitQuaternion::from_scaled_axis(dr) * truth.rotation,
-            )
-        })
-        .collect();
-    PoseSamples {
-        poses,
-        effective_sample_size: 1000.0,
-    }
-}
 
 fn failing(d: &Decision) -> String {
     d.reasons
@@ -71,7 +49,13 @@ fn main() -> anyhow::Result<()> {
             translation_std_m: None,
         };
         for (t, r) in NOISE {
-            let d = decide(&object, &gripper, &truth, &samples(&truth, t, r), &query)?;
+            let d = decide(
+                &object,
+                &gripper,
+                &truth,
+                &PoseSamples::gaussian(&truth, [t; 3], [r; 3], 1000, 1),
+                &query,
+            )?;
             println!(
                 "{name} t {:.0} mm r {:.0} deg: p {:.3} [{}] {}",
                 t * 1e3,
@@ -82,7 +66,7 @@ fn main() -> anyhow::Result<()> {
             );
         }
         if shift {
-            let s = samples(&truth, 0.003, 0.0);
+            let s = PoseSamples::gaussian(&truth, [0.003; 3], [0.0; 3], 1000, 1);
             let d = decide(&object, &gripper, &truth, &s, &query)?;
             for dy_mm in [-8.0, -4.0, 0.0, 4.0, 8.0] {
                 let mut row = String::new();

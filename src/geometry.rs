@@ -176,6 +176,33 @@ pub struct PoseSamples {
     pub effective_sample_size: f64,
 }
 
+impl PoseSamples {
+    /// `n` independent poses around `center` (reference_from_object): Gaussian translation with
+    /// `t_std_m` per reference axis, and a Gaussian rotation vector with `r_std_rad` per
+    /// reference axis applied on the left, about the object's origin. Seeded; for tests,
+    /// benchmarks and diagnostics of the decision without a tracker.
+    pub fn gaussian(center: &Pose, t_std_m: [f64; 3], r_std_rad: [f64; 3], n: usize, seed: u64) -> Self {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, StandardNormal};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let mut normal = |std: f64| std * <StandardNormal as Distribution<f64>>::sample(&StandardNormal, &mut rng);
+        let poses = (0..n)
+            .map(|_| {
+                let t = Vector3::new(normal(t_std_m[0]), normal(t_std_m[1]), normal(t_std_m[2]));
+                let r = Vector3::new(normal(r_std_rad[0]), normal(r_std_rad[1]), normal(r_std_rad[2]));
+                Pose::from_parts(
+                    Translation3::from(center.translation.vector + t),
+                    UnitQuaternion::from_scaled_axis(r) * center.rotation,
+                )
+            })
+            .collect();
+        Self {
+            poses,
+            effective_sample_size: n as f64,
+        }
+    }
+}
+
 /// Indices of one bin of the grid.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct BinIndex {
@@ -553,5 +580,30 @@ mod tests {
         let p2 = pose_from_rt(&r, t2).unwrap();
         assert!(p2.rotation.angle_to(&p.rotation) < 1e-7);
         assert!(pose_from_rt(&[2.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], [0.0; 3]).is_err());
+    }
+
+    #[test]
+    fn gaussian_pose_samples_have_the_asked_spread_per_axis_and_repeat_by_seed() {
+        let center = Pose::from_parts(
+            Translation3::new(0.5, -0.2, 1.0),
+            UnitQuaternion::from_euler_angles(0.3, -0.2, 1.1),
+        );
+        let s = PoseSamples::gaussian(&center, [0.001, 0.01, 0.0], [0.0, 0.0, 0.1], 4000, 7);
+        assert_eq!((s.poses.len(), s.effective_sample_size), (4000, 4000.0));
+        let rms = |f: &dyn Fn(&Pose) -> f64| (s.poses.iter().map(|p| f(p).powi(2)).sum::<f64>() / 4000.0).sqrt();
+        let d = |i: usize| move |p: &Pose| p.translation.vector[i] - center.translation.vector[i];
+        assert!((rms(&d(0)) - 0.001).abs() < 1e-4 && (rms(&d(1)) - 0.01).abs() < 1e-3 && rms(&d(2)) == 0.0);
+        // the rotation is about the reference z alone, applied on the left
+        let turn = |p: &Pose| (p.rotation * center.rotation.inverse()).scaled_axis();
+        assert!((rms(&|p: &Pose| turn(p).z) - 0.1).abs() < 0.01);
+        assert!(rms(&|p: &Pose| turn(p).x) < 1e-9 && rms(&|p: &Pose| turn(p).y) < 1e-9);
+        assert_eq!(
+            s,
+            PoseSamples::gaussian(&center, [0.001, 0.01, 0.0], [0.0, 0.0, 0.1], 4000, 7)
+        );
+        assert_ne!(
+            s,
+            PoseSamples::gaussian(&center, [0.001, 0.01, 0.0], [0.0, 0.0, 0.1], 4000, 8)
+        );
     }
 }

@@ -437,9 +437,10 @@ function calibrationLine(d) {
   if (!c || !c.state) return "";
   const raw = `raw ${fmt(d.p_success_raw, 2)}`;
   if (c.state === "calibrated") {
-    // the rule's own quantity against its threshold, and the spread that chose the map
+    // the rule's own quantity (e.g. the smoothed raw rate) against its threshold, and the spread
     const r = d.rule;
-    const rule = r && Number.isFinite(r.value) ? ` · rule ${fmt(r.value, 3)} / ${fmt(r.threshold, 2)}` : "";
+    const quantity = typeof r?.quantity === "string" ? `${r.quantity.replaceAll("_", " ")} ` : "";
+    const rule = r && Number.isFinite(r.value) ? ` · rule ${quantity}${fmt(r.value, 3)} / ${fmt(r.threshold, 3)}` : "";
     const s = d.smoothing?.translation_std_m_smoothed;
     const spread = Number.isFinite(s) ? ` · spread ${fmt(s * 1000, 1)} mm` : "";
     return `calibrated · ${raw}${rule}${spread}`;

@@ -10,7 +10,6 @@ use pregrasp::grasp::{
 use pregrasp::mesh::{self, Mesh};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, Normal};
 use std::path::{Path, PathBuf};
 
 fn shared() -> PathBuf {
@@ -35,24 +34,6 @@ fn table() -> SupportPlane {
 fn standing(object: &GraspObject) -> Pose {
     let (lo, _) = object.extent_along(&Vector3::z());
     Pose::from_parts(Translation3::new(0.6, 0.1, -lo), UnitQuaternion::identity())
-}
-
-/// Samples around `estimate`: Gaussian translation (std per reference axis) and rotation
-/// (std of the rotation vector per reference axis), applied on the left.
-fn gaussian_samples(estimate: &Pose, t_std_m: [f64; 3], r_std_rad: [f64; 3], n: usize, seed: u64) -> PoseSamples {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let std = Normal::new(0.0, 1.0).expect("unit normal");
-    let poses = (0..n)
-        .map(|_| {
-            let t = Vector3::from_fn(|i, _| std.sample(&mut rng) * t_std_m[i]);
-            let r = Vector3::from_fn(|i, _| std.sample(&mut rng) * r_std_rad[i]);
-            rotate_about_origin(estimate, &UnitQuaternion::from_scaled_axis(r), &t)
-        })
-        .collect();
-    PoseSamples {
-        poses,
-        effective_sample_size: n as f64,
-    }
 }
 
 /// `estimate` rotated by `r` about its own origin (in reference axes), then shifted by `t`.
@@ -82,7 +63,7 @@ fn tiny_uncertainty_around_a_centred_can_grasps() {
     let gripper = Gripper::default_parallel_jaw();
     let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
     let est = standing(&can);
-    let samples = gaussian_samples(&est, [0.001; 3], [0.5f64.to_radians(); 3], 1000, 1);
+    let samples = PoseSamples::gaussian(&est, [0.001; 3], [0.5f64.to_radians(); 3], 1000, 1);
     let d = decide(&can, &gripper, &est, &samples, &query(None)).unwrap();
     assert_eq!(d.decision, Verdict::Grasp, "{:#?}", d.reasons);
     assert!(d.p_success > 0.99, "{}", d.p_success);
@@ -122,7 +103,7 @@ fn few_effective_samples_widen_the_interval_and_block_the_grasp() {
     let gripper = Gripper::default_parallel_jaw();
     let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
     let est = standing(&can);
-    let mut samples = gaussian_samples(&est, [0.001; 3], [0.005; 3], 1000, 2);
+    let mut samples = PoseSamples::gaussian(&est, [0.001; 3], [0.005; 3], 1000, 2);
     samples.effective_sample_size = 20.0;
     let d = decide(&can, &gripper, &est, &samples, &query(Some(top_grasp(&can, 0.03)))).unwrap();
     assert!(d.p_success > 0.99);
@@ -137,7 +118,7 @@ fn translation_spread_beyond_the_finger_clearance_observes_and_names_the_closing
     let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
     let est = standing(&can);
     // clearance per side (140 - 102) / 2 = 19 mm; spread 30 mm along reference x = gripper x
-    let samples = gaussian_samples(&est, [0.03, 0.001, 0.001], [0.0; 3], 1000, 3);
+    let samples = PoseSamples::gaussian(&est, [0.03, 0.001, 0.001], [0.0; 3], 1000, 3);
     let grasp = top_grasp(&can, 0.03);
     let d = decide(&can, &gripper, &est, &samples, &query(Some(grasp))).unwrap();
     assert_eq!(d.decision, Verdict::Observe);
@@ -185,7 +166,7 @@ fn lateral_spread_beyond_the_groove_fails_alignment_along_gripper_y() {
     let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
     let est = standing(&can);
     // the groove mouth is +-9 mm across the pad (gripper y = reference y for this grasp)
-    let samples = gaussian_samples(&est, [0.001, 0.02, 0.001], [0.0; 3], 1000, 4);
+    let samples = PoseSamples::gaussian(&est, [0.001, 0.02, 0.001], [0.0; 3], 1000, 4);
     let d = decide(&can, &gripper, &est, &samples, &query(Some(top_grasp(&can, 0.03)))).unwrap();
     assert_eq!(d.decision, Verdict::Observe);
     let align = d
@@ -197,7 +178,7 @@ fn lateral_spread_beyond_the_groove_fails_alignment_along_gripper_y() {
     assert_eq!(align.drivers[0].axis, "gripper_y");
     assert_eq!(align.drivers[0].motion, Motion::Translation);
     // the same spread within the groove passes
-    let narrow = gaussian_samples(&est, [0.001, 0.003, 0.001], [0.0; 3], 1000, 5);
+    let narrow = PoseSamples::gaussian(&est, [0.001, 0.003, 0.001], [0.0; 3], 1000, 5);
     let d = decide(&can, &gripper, &est, &narrow, &query(Some(top_grasp(&can, 0.03)))).unwrap();
     assert_eq!(d.decision, Verdict::Grasp, "{:#?}", d.reasons);
 }
@@ -284,7 +265,7 @@ fn a_grasp_planned_too_low_fails_on_the_table() {
     let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
     let est = standing(&can);
     let (z_lo, _) = can.extent_along(&Vector3::z());
-    let samples = gaussian_samples(&est, [0.001; 3], [0.003; 3], 500, 9);
+    let samples = PoseSamples::gaussian(&est, [0.001; 3], [0.003; 3], 500, 9);
     // side grasp: approach along object +x, close along y; the fingers' width is vertical
     let side = |tcp_height_m: f64| {
         let g = Grasp::new(&can, &Vector3::x(), &Vector3::y(), 0.03, "side").unwrap();
@@ -325,8 +306,8 @@ fn two_modes_box_and_its_turned_copy_p_reflects_both() {
         &Vector3::zeros(),
     );
     for (other, w_est, expect) in [(turned, 0.7, 0.7), (turned, 0.4, 0.4), (flipped, 0.5, 1.0)] {
-        let a = gaussian_samples(&est, [0.001; 3], [0.005; 3], (1000.0 * w_est) as usize, 10);
-        let b = gaussian_samples(&other, [0.001; 3], [0.005; 3], 1000 - a.poses.len(), 11);
+        let a = PoseSamples::gaussian(&est, [0.001; 3], [0.005; 3], (1000.0 * w_est) as usize, 10);
+        let b = PoseSamples::gaussian(&other, [0.001; 3], [0.005; 3], 1000 - a.poses.len(), 11);
         let mut poses = a.poses;
         poses.extend(b.poses);
         let samples = PoseSamples {
@@ -359,7 +340,7 @@ fn bad_queries_are_errors_not_panics() {
         effective_sample_size: 0.0,
     };
     assert!(decide(&can, &gripper, &est, &empty, &query(None)).is_err());
-    let samples = gaussian_samples(&est, [0.001; 3], [0.0; 3], 10, 12);
+    let samples = PoseSamples::gaussian(&est, [0.001; 3], [0.0; 3], 10, 12);
     let mut q = query(None);
     q.threshold = 1.5;
     assert!(decide(&can, &gripper, &est, &samples, &q).is_err());
@@ -383,7 +364,7 @@ fn pads_above_the_object_fail_contact_and_a_palm_too_deep_fails_the_approach() {
     let gripper = Gripper::default_parallel_jaw();
     let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
     let est = standing(&can);
-    let samples = gaussian_samples(&est, [0.001; 3], [0.003; 3], 300, 13);
+    let samples = PoseSamples::gaussian(&est, [0.001; 3], [0.003; 3], 300, 13);
     // TCP 3 cm above the lid: the pads (35 mm long) close on air
     let d = decide(&can, &gripper, &est, &samples, &query(Some(top_grasp(&can, -0.03)))).unwrap();
     assert_eq!(d.p_success, 0.0);
@@ -402,7 +383,7 @@ fn a_flat_object_gets_its_top_grasp_lifted_clear_of_the_table() {
     // 3 cm thin: a grasp to the middle would put the finger tips into the table
     let flat = GraspObject::new(&mesh::builtin_box([0.16, 0.12, 0.03], [[1, 1, 1], [2, 2, 2]])).unwrap();
     let est = standing(&flat);
-    let samples = gaussian_samples(&est, [0.001; 3], [0.003; 3], 300, 14);
+    let samples = PoseSamples::gaussian(&est, [0.001; 3], [0.003; 3], 300, 14);
     let d = decide(&flat, &gripper, &est, &samples, &query(None)).unwrap();
     assert_eq!(d.decision, Verdict::Grasp, "{:#?}", d.reasons);
     assert!(d.grasp.label.contains("lifted"), "{}", d.grasp.label);
@@ -468,7 +449,7 @@ fn a_calibrated_answer_carries_the_raw_rate_beside_the_mapped_one() {
     let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
     let est = standing(&can);
     // few effective samples: the raw rule (Wilson lower bound >= 0.9) observes
-    let mut samples = gaussian_samples(&est, [0.001; 3], [0.005; 3], 1000, 2);
+    let mut samples = PoseSamples::gaussian(&est, [0.001; 3], [0.005; 3], 1000, 2);
     samples.effective_sample_size = 20.0;
     let grasp = Some(top_grasp(&can, 0.03));
     let raw = decide(&can, &gripper, &est, &samples, &query(grasp.clone())).unwrap();
@@ -517,7 +498,7 @@ fn a_run_rule_grasps_only_through_the_tracks_smoother() {
     let gripper = Gripper::default_parallel_jaw();
     let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
     let est = standing(&can);
-    let samples = gaussian_samples(&est, [0.001; 3], [0.005; 3], 1000, 3);
+    let samples = PoseSamples::gaussian(&est, [0.001; 3], [0.005; 3], 1000, 3);
     let mut map = test_map("running");
     map.rule.run_length = 2;
     map.smoothing_time_constant_s = 1.0;
