@@ -70,7 +70,8 @@ pub struct DecisionFeatures {
 
 /// The settings a calibration map is fitted for: the tracker's (its seed and the service's cap
 /// on tracks per object left out: neither changes how a track's distribution behaves), the
-/// codebooks', the rotation grid and the gripper. Their hash
+/// codebooks', the rotation grid, the gripper and the decision's procedure
+/// ([`crate::grasp::decision::DECISION_PROCEDURE_VERSION`]). Their hash
 /// ([`crate::grasp::calibrated::settings_hash`]) is stored with the map. The number of samples
 /// per decision is not part of them: the raw rate estimates the same share whatever the number.
 pub fn calibration_settings(
@@ -100,6 +101,7 @@ pub fn calibration_settings(
         "codebook": codebook,
         "grid_step_deg": grid_step_deg,
         "gripper": gripper,
+        "decision_version": crate::grasp::decision::DECISION_PROCEDURE_VERSION,
     })
 }
 
@@ -327,6 +329,15 @@ mod tests {
         let mut g2 = g.clone();
         g2.max_opening_m += 0.01;
         assert_ne!(h, calibration_settings_hash(&t, &c, 10, &g2));
+        // the decision's procedure is part of them
+        let settings = calibration_settings(&t, &c, 10, &g);
+        assert_eq!(
+            settings["decision_version"],
+            crate::grasp::decision::DECISION_PROCEDURE_VERSION
+        );
+        let mut other = settings.clone();
+        other["decision_version"] = serde_json::json!(crate::grasp::decision::DECISION_PROCEDURE_VERSION + 1);
+        assert_ne!(h, crate::grasp::calibrated::settings_hash(&other));
         // the verification settings left out at their defaults still count when set
         let mut t4 = t.clone();
         t4.verification.occlusion_truncation = 0.5;

@@ -68,9 +68,11 @@ pub fn load_records(paths: &[PathBuf]) -> Result<DecisionRecords, EvalError> {
             serde_json::from_str(&text).map_err(|e| EvalError::Data(format!("{}: {e}", p.display())))?;
         // the hash is recomputed from the settings stored beside it (runs of the first
         // version of `decisions.json` also stored the samples per decision, no longer a
-        // setting of the map)
+        // setting of the map, and none stored the decision's procedure version)
         if let Some(o) = r.settings.as_object_mut() {
             o.remove("n_samples");
+            // runs from before the decision's procedure was versioned ran its first version
+            o.entry("decision_version").or_insert(serde_json::json!(1));
         }
         r.settings_hash = crate::grasp::calibrated::settings_hash(&r.settings);
         // sequences of different runs may share names (000000...): prefix the run's data set

@@ -13,6 +13,10 @@ use parry3d::shape::{Cuboid, Shape};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+/// Version of the decision's own procedure (how candidates are generated, chosen and checked).
+/// It is part of the settings a calibration map is fitted for: bump it when a change moves the
+/// raw rate of the same samples, so that maps fitted before it are refused as stale.
+pub const DECISION_PROCEDURE_VERSION: u32 = 1;
 /// Default number of pose samples.
 pub const DEFAULT_N_SAMPLES: usize = 1000;
 /// Default threshold on the lower bound of the 95% interval.
