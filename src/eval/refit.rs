@@ -611,7 +611,7 @@ pub struct Args {
     #[arg(long, default_value_t = DEFAULT_FOLDS)]
     pub folds: usize,
     /// A rule meets the false grasp limit only when it keeps it in at least this share of
-    /// resamples of the fitting approaches (1: never; 0: the point rate alone).
+    /// resamples of the fitting approaches (1: in every one; 0: the point rate alone).
     #[arg(long, default_value_t = MIN_LIMIT_CONFIDENCE)]
     pub limit_confidence: f64,
     /// Blocks of the isotonic fit with fewer decisions are merged into a neighbour.
