@@ -155,9 +155,9 @@ fn records<'a>(outcomes: impl Iterator<Item = &'a DecisionOutcome>) -> Vec<Calib
 
 /// Recall within reach: of the frames whose grasp succeeds on the true pose with the robot
 /// camera within [`RECALL_MAX_DISTANCE_M`], the share answered `grasp`; with that count.
-pub fn recall(outcomes: &[DecisionOutcome]) -> (Option<f64>, usize) {
+pub fn recall<'a>(outcomes: impl IntoIterator<Item = &'a DecisionOutcome>) -> (Option<f64>, usize) {
     let eligible: Vec<&DecisionOutcome> = outcomes
-        .iter()
+        .into_iter()
         .filter(|o| o.success && o.camera_distance_m.is_some_and(|d| d <= RECALL_MAX_DISTANCE_M))
         .collect();
     let n = eligible.len();
@@ -200,8 +200,8 @@ pub fn summarise(outcomes: &[DecisionOutcome], threshold: f64) -> Option<Decisio
     let mut ece_leave_one_object_out = BTreeMap::new();
     let mut by_object = BTreeMap::new();
     for obj in &objects {
-        let own: Vec<DecisionOutcome> = outcomes.iter().filter(|o| o.object == *obj).cloned().collect();
-        let (recall, recall_frames) = recall(&own);
+        let own: Vec<&DecisionOutcome> = outcomes.iter().filter(|o| o.object == *obj).collect();
+        let (recall, recall_frames) = recall(own.iter().copied());
         by_object.insert(
             obj.to_string(),
             ObjectDecisions {
@@ -212,10 +212,7 @@ pub fn summarise(outcomes: &[DecisionOutcome], threshold: f64) -> Option<Decisio
                 recall_frames,
             },
         );
-        ece_by_object.insert(
-            obj.to_string(),
-            calibration_report(&records(outcomes.iter().filter(|o| o.object == *obj))).ece,
-        );
+        ece_by_object.insert(obj.to_string(), calibration_report(&records(own.into_iter())).ece);
         let rest = records(outcomes.iter().filter(|o| o.object != *obj));
         if !rest.is_empty() {
             ece_leave_one_object_out.insert(obj.to_string(), calibration_report(&rest).ece);
