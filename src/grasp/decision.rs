@@ -334,6 +334,13 @@ impl GripperShapes {
 
     /// (contact, aligned) when the fingers close on the object.
     fn closing(&self, obj_pose: &PPose, obj: &dyn Shape) -> (bool, bool) {
+        self.closing_until(obj_pose, obj, false)
+    }
+
+    /// [`Self::closing`]; with `stop_at_misalignment`, a pad outside the capture funnel ends
+    /// the test at once with `(true, false)` (the grasp fails either way; the other finger's
+    /// contact is then not looked at).
+    fn closing_until(&self, obj_pose: &PPose, obj: &dyn Shape, stop_at_misalignment: bool) -> (bool, bool) {
         let opts = ShapeCastOptions::with_max_time_of_impact(self.closing_travel_m);
         let mut aligned = true;
         for (k, side) in [1.0f32, -1.0].into_iter().enumerate() {
@@ -376,6 +383,9 @@ impl GripperShapes {
                     .flatten()
             };
             let (Some(cp), Some(cg)) = (near(&self.pad), near(&self.groove)) else {
+                if stop_at_misalignment {
+                    return (true, false);
+                }
                 aligned = false;
                 continue;
             };
@@ -384,6 +394,9 @@ impl GripperShapes {
             let n_gr = convert::vector_from_parry(cg.normal2).normalize();
             let outward = Vector3::new(side as f64, 0.0, 0.0);
             if n_pad.dot(&outward) < self.cos_capture {
+                if stop_at_misalignment {
+                    return (true, false);
+                }
                 aligned = false;
                 continue;
             }
@@ -394,6 +407,9 @@ impl GripperShapes {
                 // the pad met a flat face at its edge: closing squares the face onto the pad
                 n_gr.dot(&n_pad) >= SAME_FACE_DEG.to_radians().cos()
             };
+            if stop_at_misalignment && !aligned {
+                return (true, false);
+            }
         }
         (true, aligned)
     }
@@ -436,6 +452,27 @@ fn evaluate_in_gripper(
         contact,
         aligned: contact && aligned,
     }
+}
+
+/// Whether every test passes on one object pose: the same answer as
+/// `evaluate_in_gripper(..).success()`, stopping at the first test that fails (the table's
+/// before any query, the approach's before the closing's).
+fn succeeds_in_gripper(
+    shapes: &GripperShapes,
+    object: &GraspObject,
+    gripper_from_object: &Pose,
+    table_clear: bool,
+) -> bool {
+    if !table_clear {
+        return false;
+    }
+    let obj_pose = convert::pose_to_parry(gripper_from_object);
+    let obj: &dyn Shape = &**object.shape();
+    if !shapes.approach_clear(&obj_pose, obj) {
+        return false;
+    }
+    let (contact, aligned) = shapes.closing_until(&obj_pose, obj, true);
+    contact && aligned
 }
 
 /// All tests on one object pose with a planned gripper pose (both in the reference frame).
@@ -489,6 +526,45 @@ struct Evaluated {
     reference_from_gripper: Pose,
 }
 
+/// `reference_from_gripper` of `grasp` planned on `estimate`, and whether it clears the table.
+fn planned(
+    gripper: &Gripper,
+    estimate: &Pose,
+    grasp: &Grasp,
+    plane: Option<&SupportPlane>,
+) -> Result<(Pose, bool), GraspError> {
+    let reference_from_gripper = estimate * grasp.object_from_gripper;
+    let table_clear = match plane {
+        Some(pl) => {
+            table_clearance_m(gripper, &pl.transformed(&reference_from_gripper.inverse()))? >= gripper.table_clearance_m
+        }
+        None => true,
+    };
+    Ok((reference_from_gripper, table_clear))
+}
+
+/// How many of `poses` the grasp passes every test on (what ranking needs; the full outcomes
+/// are only computed for the grasp chosen).
+fn count_successes(
+    object: &GraspObject,
+    gripper: &Gripper,
+    shapes: &GripperShapes,
+    estimate: &Pose,
+    poses: &[Pose],
+    grasp: &Grasp,
+    plane: Option<&SupportPlane>,
+) -> Result<usize, GraspError> {
+    let (reference_from_gripper, table_clear) = planned(gripper, estimate, grasp, plane)?;
+    if !table_clear {
+        return Ok(0);
+    }
+    let gripper_from_reference = reference_from_gripper.inverse();
+    Ok(poses
+        .par_iter()
+        .filter(|p| succeeds_in_gripper(shapes, object, &(gripper_from_reference * *p), table_clear))
+        .count())
+}
+
 fn evaluate_grasp(
     object: &GraspObject,
     gripper: &Gripper,
@@ -498,12 +574,8 @@ fn evaluate_grasp(
     grasp: &Grasp,
     plane: Option<&SupportPlane>,
 ) -> Result<Evaluated, GraspError> {
-    let reference_from_gripper = estimate * grasp.object_from_gripper;
+    let (reference_from_gripper, table_clear) = planned(gripper, estimate, grasp, plane)?;
     let gripper_from_reference = reference_from_gripper.inverse();
-    let table_clear = match plane {
-        Some(pl) => table_clearance_m(gripper, &pl.transformed(&gripper_from_reference))? >= gripper.table_clearance_m,
-        None => true,
-    };
     let outcomes = poses
         .par_iter()
         .map(|p| evaluate_in_gripper(shapes, object, &(gripper_from_reference * p), table_clear))
@@ -616,10 +688,11 @@ pub fn decide_calibrated(
             // on all of them
             let n_screen = SCREEN_SAMPLES.min(n);
             let screen_ess = ess * n_screen as f64 / n as f64;
-            let mut ranked: Vec<(RankedGrasp, Option<Evaluated>)> = Vec::new();
+            // (ranked, passing samples among those it was evaluated on)
+            let mut ranked: Vec<(RankedGrasp, usize)> = Vec::new();
             for g in cands {
-                let e = evaluate_grasp(object, gripper, &shapes, estimate, &poses[..n_screen], &g, plane)?;
-                let p = share(&e.outcomes, |o| o.success());
+                let k = count_successes(object, gripper, &shapes, estimate, &poses[..n_screen], &g, plane)?;
+                let p = k as f64 / n_screen as f64;
                 ranked.push((
                     RankedGrasp {
                         grasp: g,
@@ -627,17 +700,17 @@ pub fn decide_calibrated(
                         ci95: wilson_interval(p, screen_ess),
                         n_samples: n_screen,
                     },
-                    None,
+                    k,
                 ));
             }
             ranked.sort_by(|a, b| b.0.p_success.total_cmp(&a.0.p_success));
             if n_screen < n {
-                for (r, e) in ranked.iter_mut().take(SCREEN_KEEP) {
-                    let full = evaluate_grasp(object, gripper, &shapes, estimate, poses, &r.grasp, plane)?;
-                    r.p_success = share(&full.outcomes, |o| o.success());
+                // the screened samples' count carries over: only the rest are evaluated
+                for (r, k) in ranked.iter_mut().take(SCREEN_KEEP) {
+                    *k += count_successes(object, gripper, &shapes, estimate, &poses[n_screen..], &r.grasp, plane)?;
+                    r.p_success = *k as f64 / n as f64;
                     r.ci95 = wilson_interval(r.p_success, ess);
                     r.n_samples = n;
-                    *e = Some(full);
                 }
                 ranked.sort_by(|a, b| {
                     (b.0.n_samples, b.0.p_success)
@@ -646,11 +719,9 @@ pub fn decide_calibrated(
                 });
             }
             let list: Vec<RankedGrasp> = ranked.iter().map(|(r, _)| r.clone()).collect();
-            let (best, e) = ranked.swap_remove(0);
-            let e = match e {
-                Some(e) => e,
-                None => evaluate_grasp(object, gripper, &shapes, estimate, poses, &best.grasp, plane)?,
-            };
+            let (best, _) = ranked.swap_remove(0);
+            // every test on every sample for the chosen grasp: its reasons and drivers
+            let e = evaluate_grasp(object, gripper, &shapes, estimate, poses, &best.grasp, plane)?;
             (best.grasp, e, list)
         }
     };
@@ -935,5 +1006,49 @@ mod tests {
         };
         let c = table_clearance_m(&g, &plane).unwrap();
         assert!((c - 0.01).abs() < 1e-9, "{c}");
+    }
+
+    /// The ranking's early-stopping count passes exactly the samples that pass every test.
+    #[test]
+    fn counting_successes_agrees_with_the_full_outcomes() {
+        let object = GraspObject::new(&crate::mesh::builtin_cylinder(0.05, 0.14, 48, [[1, 2, 3], [4, 5, 6]])).unwrap();
+        let gripper = Gripper::default_parallel_jaw();
+        let shapes = GripperShapes::new(&gripper);
+        let estimate = Pose::translation(0.6, 0.1, 0.07);
+        let plane = SupportPlane {
+            normal: [0.0, 0.0, 1.0],
+            point_m: [0.0, 0.0, 0.0],
+        };
+        // wide enough that approach, contact and alignment each fail on some samples
+        let samples = PoseSamples::gaussian(&estimate, [0.02; 3], [0.3; 3], 400, 3);
+        let mut failing = std::collections::HashSet::new();
+        for grasp in generate_candidates(&object, &gripper) {
+            let full = evaluate_grasp(
+                &object,
+                &gripper,
+                &shapes,
+                &estimate,
+                &samples.poses,
+                &grasp,
+                Some(&plane),
+            )
+            .unwrap();
+            for o in &full.outcomes {
+                failing.extend(FailureTest::ALL.into_iter().filter(|t| o.failed(*t)));
+            }
+            let passing = full.outcomes.iter().filter(|o| o.success()).count();
+            let counted = count_successes(
+                &object,
+                &gripper,
+                &shapes,
+                &estimate,
+                &samples.poses,
+                &grasp,
+                Some(&plane),
+            )
+            .unwrap();
+            assert_eq!(counted, passing, "{}", grasp.label);
+        }
+        assert_eq!(failing.len(), FailureTest::ALL.len(), "{failing:?}");
     }
 }
