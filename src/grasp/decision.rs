@@ -526,64 +526,68 @@ struct Evaluated {
     reference_from_gripper: Pose,
 }
 
-/// `reference_from_gripper` of `grasp` planned on `estimate`, and whether it clears the table.
-fn planned(
-    gripper: &Gripper,
-    estimate: &Pose,
-    grasp: &Grasp,
-    plane: Option<&SupportPlane>,
-) -> Result<(Pose, bool), GraspError> {
-    let reference_from_gripper = estimate * grasp.object_from_gripper;
-    let table_clear = match plane {
-        Some(pl) => {
-            table_clearance_m(gripper, &pl.transformed(&reference_from_gripper.inverse()))? >= gripper.table_clearance_m
+/// What every candidate is planned and checked against: the object at the estimate, the
+/// gripper and the table.
+struct Planning<'a> {
+    object: &'a GraspObject,
+    gripper: &'a Gripper,
+    shapes: GripperShapes,
+    estimate: &'a Pose,
+    plane: Option<&'a SupportPlane>,
+}
+
+impl<'a> Planning<'a> {
+    fn new(object: &'a GraspObject, gripper: &'a Gripper, estimate: &'a Pose, plane: Option<&'a SupportPlane>) -> Self {
+        Self {
+            object,
+            gripper,
+            shapes: GripperShapes::new(gripper),
+            estimate,
+            plane,
         }
-        None => true,
-    };
-    Ok((reference_from_gripper, table_clear))
-}
-
-/// How many of `poses` the grasp passes every test on (what ranking needs; the full outcomes
-/// are only computed for the grasp chosen).
-fn count_successes(
-    object: &GraspObject,
-    gripper: &Gripper,
-    shapes: &GripperShapes,
-    estimate: &Pose,
-    poses: &[Pose],
-    grasp: &Grasp,
-    plane: Option<&SupportPlane>,
-) -> Result<usize, GraspError> {
-    let (reference_from_gripper, table_clear) = planned(gripper, estimate, grasp, plane)?;
-    if !table_clear {
-        return Ok(0);
     }
-    let gripper_from_reference = reference_from_gripper.inverse();
-    Ok(poses
-        .par_iter()
-        .filter(|p| succeeds_in_gripper(shapes, object, &(gripper_from_reference * *p), table_clear))
-        .count())
-}
 
-fn evaluate_grasp(
-    object: &GraspObject,
-    gripper: &Gripper,
-    shapes: &GripperShapes,
-    estimate: &Pose,
-    poses: &[Pose],
-    grasp: &Grasp,
-    plane: Option<&SupportPlane>,
-) -> Result<Evaluated, GraspError> {
-    let (reference_from_gripper, table_clear) = planned(gripper, estimate, grasp, plane)?;
-    let gripper_from_reference = reference_from_gripper.inverse();
-    let outcomes = poses
-        .par_iter()
-        .map(|p| evaluate_in_gripper(shapes, object, &(gripper_from_reference * p), table_clear))
-        .collect();
-    Ok(Evaluated {
-        outcomes,
-        reference_from_gripper,
-    })
+    /// `reference_from_gripper` of `grasp` planned on the estimate, and whether it clears the
+    /// table.
+    fn planned(&self, grasp: &Grasp) -> Result<(Pose, bool), GraspError> {
+        let reference_from_gripper = self.estimate * grasp.object_from_gripper;
+        let table_clear = match self.plane {
+            Some(pl) => {
+                table_clearance_m(self.gripper, &pl.transformed(&reference_from_gripper.inverse()))?
+                    >= self.gripper.table_clearance_m
+            }
+            None => true,
+        };
+        Ok((reference_from_gripper, table_clear))
+    }
+
+    /// How many of `poses` the grasp passes every test on (what ranking needs; the full
+    /// outcomes are only computed for the grasp chosen).
+    fn count_successes(&self, poses: &[Pose], grasp: &Grasp) -> Result<usize, GraspError> {
+        let (reference_from_gripper, table_clear) = self.planned(grasp)?;
+        if !table_clear {
+            return Ok(0);
+        }
+        let gripper_from_reference = reference_from_gripper.inverse();
+        Ok(poses
+            .par_iter()
+            .filter(|p| succeeds_in_gripper(&self.shapes, self.object, &(gripper_from_reference * *p), table_clear))
+            .count())
+    }
+
+    /// Every test on every one of `poses`.
+    fn evaluate(&self, poses: &[Pose], grasp: &Grasp) -> Result<Evaluated, GraspError> {
+        let (reference_from_gripper, table_clear) = self.planned(grasp)?;
+        let gripper_from_reference = reference_from_gripper.inverse();
+        let outcomes = poses
+            .par_iter()
+            .map(|p| evaluate_in_gripper(&self.shapes, self.object, &(gripper_from_reference * p), table_clear))
+            .collect();
+        Ok(Evaluated {
+            outcomes,
+            reference_from_gripper,
+        })
+    }
 }
 
 /// Plans the grasp on `estimate` (reference_from_object) and checks it on the samples.
@@ -666,12 +670,12 @@ pub fn decide_calibrated(
     } else {
         n as f64
     };
-    let shapes = GripperShapes::new(gripper);
     let plane = query.support_plane.as_ref();
+    let planning = Planning::new(object, gripper, estimate, plane);
 
     let (grasp, eval, candidates) = match &query.grasp {
         Some(g) => {
-            let e = evaluate_grasp(object, gripper, &shapes, estimate, poses, g, plane)?;
+            let e = planning.evaluate(poses, g)?;
             (g.clone(), e, Vec::new())
         }
         None => {
@@ -691,7 +695,7 @@ pub fn decide_calibrated(
             // (ranked, passing samples among those it was evaluated on)
             let mut ranked: Vec<(RankedGrasp, usize)> = Vec::new();
             for g in cands {
-                let k = count_successes(object, gripper, &shapes, estimate, &poses[..n_screen], &g, plane)?;
+                let k = planning.count_successes(&poses[..n_screen], &g)?;
                 let p = k as f64 / n_screen as f64;
                 ranked.push((
                     RankedGrasp {
@@ -707,7 +711,7 @@ pub fn decide_calibrated(
             if n_screen < n {
                 // the screened samples' count carries over: only the rest are evaluated
                 for (r, k) in ranked.iter_mut().take(SCREEN_KEEP) {
-                    *k += count_successes(object, gripper, &shapes, estimate, &poses[n_screen..], &r.grasp, plane)?;
+                    *k += planning.count_successes(&poses[n_screen..], &r.grasp)?;
                     r.p_success = *k as f64 / n as f64;
                     r.ci95 = wilson_interval(r.p_success, ess);
                     r.n_samples = n;
@@ -721,7 +725,7 @@ pub fn decide_calibrated(
             let list: Vec<RankedGrasp> = ranked.iter().map(|(r, _)| r.clone()).collect();
             let (best, _) = ranked.swap_remove(0);
             // every test on every sample for the chosen grasp: its reasons and drivers
-            let e = evaluate_grasp(object, gripper, &shapes, estimate, poses, &best.grasp, plane)?;
+            let e = planning.evaluate(poses, &best.grasp)?;
             (best.grasp, e, list)
         }
     };
@@ -1013,7 +1017,6 @@ mod tests {
     fn counting_successes_agrees_with_the_full_outcomes() {
         let object = GraspObject::new(&crate::mesh::builtin_cylinder(0.05, 0.14, 48, [[1, 2, 3], [4, 5, 6]])).unwrap();
         let gripper = Gripper::default_parallel_jaw();
-        let shapes = GripperShapes::new(&gripper);
         let estimate = Pose::translation(0.6, 0.1, 0.07);
         let plane = SupportPlane {
             normal: [0.0, 0.0, 1.0],
@@ -1021,32 +1024,15 @@ mod tests {
         };
         // wide enough that approach, contact and alignment each fail on some samples
         let samples = PoseSamples::gaussian(&estimate, [0.02; 3], [0.3; 3], 400, 3);
+        let planning = Planning::new(&object, &gripper, &estimate, Some(&plane));
         let mut failing = std::collections::HashSet::new();
         for grasp in generate_candidates(&object, &gripper) {
-            let full = evaluate_grasp(
-                &object,
-                &gripper,
-                &shapes,
-                &estimate,
-                &samples.poses,
-                &grasp,
-                Some(&plane),
-            )
-            .unwrap();
+            let full = planning.evaluate(&samples.poses, &grasp).unwrap();
             for o in &full.outcomes {
                 failing.extend(FailureTest::ALL.into_iter().filter(|t| o.failed(*t)));
             }
             let passing = full.outcomes.iter().filter(|o| o.success()).count();
-            let counted = count_successes(
-                &object,
-                &gripper,
-                &shapes,
-                &estimate,
-                &samples.poses,
-                &grasp,
-                Some(&plane),
-            )
-            .unwrap();
+            let counted = planning.count_successes(&samples.poses, &grasp).unwrap();
             assert_eq!(counted, passing, "{}", grasp.label);
         }
         assert_eq!(failing.len(), FailureTest::ALL.len(), "{failing:?}");
