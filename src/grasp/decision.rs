@@ -454,18 +454,10 @@ fn evaluate_in_gripper(
     }
 }
 
-/// Whether every test passes on one object pose: the same answer as
-/// `evaluate_in_gripper(..).success()`, stopping at the first test that fails (the table's
-/// before any query, the approach's before the closing's).
-fn succeeds_in_gripper(
-    shapes: &GripperShapes,
-    object: &GraspObject,
-    gripper_from_object: &Pose,
-    table_clear: bool,
-) -> bool {
-    if !table_clear {
-        return false;
-    }
+/// Whether every test passes on one object pose for a gripper pose that clears the table:
+/// the same answer as `evaluate_in_gripper(.., true).success()`, stopping at the first test
+/// that fails (the approach's before the closing's).
+fn succeeds_in_gripper(shapes: &GripperShapes, object: &GraspObject, gripper_from_object: &Pose) -> bool {
     let obj_pose = convert::pose_to_parry(gripper_from_object);
     let obj: &dyn Shape = &**object.shape();
     if !shapes.approach_clear(&obj_pose, obj) {
@@ -473,6 +465,22 @@ fn succeeds_in_gripper(
     }
     let (contact, aligned) = shapes.closing_until(&obj_pose, obj, true);
     contact && aligned
+}
+
+/// Whether the open gripper at `reference_from_gripper` (and on its way in) keeps the
+/// gripper's clearance from the table; true without one.
+fn clears_table(
+    gripper: &Gripper,
+    reference_from_gripper: &Pose,
+    plane: Option<&SupportPlane>,
+) -> Result<bool, GraspError> {
+    match plane {
+        Some(pl) => Ok(
+            table_clearance_m(gripper, &pl.transformed(&reference_from_gripper.inverse()))?
+                >= gripper.table_clearance_m,
+        ),
+        None => Ok(true),
+    }
 }
 
 /// All tests on one object pose with a planned gripper pose (both in the reference frame).
@@ -484,15 +492,11 @@ pub fn evaluate_pose(
     plane: Option<&SupportPlane>,
 ) -> Result<PoseOutcome, GraspError> {
     let shapes = GripperShapes::new(gripper);
-    let gripper_from_reference = reference_from_gripper.inverse();
-    let table_clear = match plane {
-        Some(pl) => table_clearance_m(gripper, &pl.transformed(&gripper_from_reference))? >= gripper.table_clearance_m,
-        None => true,
-    };
+    let table_clear = clears_table(gripper, reference_from_gripper, plane)?;
     Ok(evaluate_in_gripper(
         &shapes,
         object,
-        &(gripper_from_reference * reference_from_object),
+        &(reference_from_gripper.inverse() * reference_from_object),
         table_clear,
     ))
 }
@@ -551,13 +555,7 @@ impl<'a> Planning<'a> {
     /// table.
     fn planned(&self, grasp: &Grasp) -> Result<(Pose, bool), GraspError> {
         let reference_from_gripper = self.estimate * grasp.object_from_gripper;
-        let table_clear = match self.plane {
-            Some(pl) => {
-                table_clearance_m(self.gripper, &pl.transformed(&reference_from_gripper.inverse()))?
-                    >= self.gripper.table_clearance_m
-            }
-            None => true,
-        };
+        let table_clear = clears_table(self.gripper, &reference_from_gripper, self.plane)?;
         Ok((reference_from_gripper, table_clear))
     }
 
@@ -571,7 +569,7 @@ impl<'a> Planning<'a> {
         let gripper_from_reference = reference_from_gripper.inverse();
         Ok(poses
             .par_iter()
-            .filter(|p| succeeds_in_gripper(&self.shapes, self.object, &(gripper_from_reference * *p), table_clear))
+            .filter(|p| succeeds_in_gripper(&self.shapes, self.object, &(gripper_from_reference * *p)))
             .count())
     }
 
