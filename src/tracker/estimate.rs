@@ -510,6 +510,9 @@ pub struct RotationSummary {
     pub entropy: f64,
     /// Covariance of the rotation vector about `rotation` over the top bins.
     pub covariance: Matrix3<f64>,
+    /// The same with each bin taken at its turn (of those given) nearest to `rotation`: the
+    /// error of the surface, which a near-symmetric turn leaves where it was.
+    pub surface_covariance: Matrix3<f64>,
     /// True when the estimate jumped to the global mode.
     pub jumped: bool,
 }
@@ -572,6 +575,7 @@ pub fn summarise_rotation(
     mean_position: &Vector3<f64>,
     previous: Option<&UnitQuaternion<f64>>,
     config: &EstimateConfig,
+    turns: &[Matrix3<f64>],
 ) -> RotationSummary {
     let total: f64 = mixture.iter().sum::<f64>().max(1e-300);
     // the same terms in the same order; a run of equal values (a row of bins on the floor)
@@ -654,21 +658,30 @@ pub fn summarise_rotation(
             }
         }
     };
-    let mut cov = Matrix3::zeros();
+    let turns: Vec<UnitQuaternion<f64>> = turns.iter().map(|t| UnitQuaternion::from_matrix(t)).collect();
+    let (mut cov, mut surface_cov) = (Matrix3::zeros(), Matrix3::zeros());
     let mut wsum = 0.0;
     for (q, m) in &top {
-        let d = (rotation.inverse() * q).scaled_axis();
+        let e = rotation.inverse() * q;
+        let d = e.scaled_axis();
         cov += d * d.transpose() * *m;
+        let ds = turns
+            .iter()
+            .map(|t| (e * t).scaled_axis())
+            .fold(d, |best, v| if v.norm() < best.norm() { v } else { best });
+        surface_cov += ds * ds.transpose() * *m;
         wsum += m;
     }
     if wsum > 0.0 {
         cov /= wsum;
+        surface_cov /= wsum;
     }
     RotationSummary {
         rotation,
         modes,
         entropy,
         covariance: cov,
+        surface_covariance: surface_cov,
         jumped,
     }
 }
@@ -727,6 +740,38 @@ mod tests {
     }
 
     #[test]
+    fn a_near_symmetric_turn_widens_the_rotation_but_not_the_surface() {
+        let grid = RotationGrid::new(5).unwrap();
+        let mut h = vec![1e-9; grid.len()];
+        let a = grid.flat(crate::geometry::BinIndex {
+            elevation: 12,
+            azimuth: 20,
+            inplane: 30,
+        });
+        let ra = grid.rotation(grid.unflat(a));
+        let turn = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+        let b = grid.flat_of(&(ra * turn));
+        h[a] = 0.7;
+        h[b] = 0.3;
+        let pos = Vector3::new(0.0, 0.0, 1.0);
+        let cfg = EstimateConfig::default();
+        let plain = summarise_rotation(&grid, &h, &pos, None, &cfg, &[]);
+        assert_eq!(
+            plain.covariance, plain.surface_covariance,
+            "no turns: the same covariance"
+        );
+        let turned = summarise_rotation(&grid, &h, &pos, None, &cfg, &[turn.to_rotation_matrix().into_inner()]);
+        assert_eq!(
+            turned.covariance, plain.covariance,
+            "the reported covariance keeps the turn"
+        );
+        // the turn's bin lies within half a bin (2.5 degrees per angle) of the turned rotation
+        let (wide, surface) = (plain.covariance.trace(), turned.surface_covariance.trace());
+        assert!(wide > 1.5, "the turn's 30 % at pi rad: {wide}");
+        assert!(surface < 0.01, "folded onto the estimate: {surface}");
+    }
+
+    #[test]
     fn summary_finds_two_modes_and_jumps_only_when_the_other_dominates() {
         let grid = RotationGrid::new(15).unwrap();
         let mut h = vec![1e-6; grid.len()];
@@ -744,7 +789,7 @@ mod tests {
         h[bb] = 0.6;
         let pos = Vector3::new(0.0, 0.0, 1.0);
         let cfg = EstimateConfig::default();
-        let s = summarise_rotation(&grid, &h, &pos, None, &cfg);
+        let s = summarise_rotation(&grid, &h, &pos, None, &cfg, &[]);
         assert!(s.modes.len() >= 2);
         assert!((s.modes[0].mass / s.modes[1].mass - 2.0).abs() < 0.05, "{:?}", s.modes);
         let rb = grid.rotation(grid.unflat(bb));
@@ -752,9 +797,16 @@ mod tests {
         // previous estimate at mode a: b holds only 2x a's mass -> no jump at ratio 2.5
         let ra = grid.rotation(grid.unflat(ba));
         let cfg2 = EstimateConfig { jump_ratio: 2.5, ..cfg };
-        let s2 = summarise_rotation(&grid, &h, &pos, Some(&ra), &cfg2);
+        let s2 = summarise_rotation(&grid, &h, &pos, Some(&ra), &cfg2, &[]);
         assert!(!s2.jumped && s2.rotation.angle_to(&ra) < 1e-6);
-        let s3 = summarise_rotation(&grid, &h, &pos, Some(&ra), &EstimateConfig { jump_ratio: 1.5, ..cfg });
+        let s3 = summarise_rotation(
+            &grid,
+            &h,
+            &pos,
+            Some(&ra),
+            &EstimateConfig { jump_ratio: 1.5, ..cfg },
+            &[],
+        );
         assert!(s3.jumped && s3.rotation.angle_to(&rb) < 1e-6);
         assert!(s.entropy > 0.0);
     }

@@ -309,6 +309,10 @@ struct TrackState {
     /// Per camera its newest registration of the track, kept for the steps without one
     /// (`RegistrationConfig::carry_max_age_s`).
     carried_fits: Vec<CarriedFit>,
+    /// The rotation's covariance modulo the object's turns at the last estimate
+    /// ([`crate::tracker::estimate::RotationSummary::surface_covariance`]): what the
+    /// registration counts of the rotation's error.
+    surface_rotation_cov: Option<nalgebra::Matrix3<f64>>,
 }
 
 /// One camera's registration of a track, kept across steps: the fitted position and its
@@ -455,7 +459,14 @@ impl Tracker {
             } else {
                 Vec::new()
             };
-            let turns = self.turns_of(&mesh, &codebook);
+            // the turns depend on the mesh alone: a finer codebook of the same mesh keeps them
+            // (the search costs 0.2-0.6 s per object)
+            let same_mesh = self.models[mi].mesh == mesh && self.models[mi].codebook.box_m() == codebook.box_m();
+            let turns = if same_mesh {
+                std::mem::take(&mut self.models[mi].turns)
+            } else {
+                self.turns_of(&mesh, &codebook)
+            };
             let m = &mut self.models[mi];
             m.turns = turns;
             m.mesh = mesh;
@@ -848,6 +859,7 @@ impl Tracker {
                             verified_from: Vec::new(),
                             registered: None,
                             carried_fits: Vec::new(),
+                            surface_rotation_cov: None,
                         });
                         report.tracks_created.push(id);
                         self.states.len() - 1
@@ -1052,6 +1064,7 @@ mod tests {
             verified_from: Vec::new(),
             registered: None,
             carried_fits: Vec::new(),
+            surface_rotation_cov: None,
         };
         floor_components(&mut s, 0.05);
         let w1: f64 = s.weights[2] + s.weights[3];

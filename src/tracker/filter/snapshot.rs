@@ -393,5 +393,6 @@ fn state_from_column(
         verified_from: Vec::new(),
         registered: None,
         carried_fits: Vec::new(),
+        surface_rotation_cov: None,
     }
 }

@@ -691,7 +691,12 @@ impl TrackUpdate<'_> {
         // the rotation's error: the estimate's rotation-vector covariance (object frame) plus
         // the grid's quantisation (a uniform bin's variance per axis)
         let bin_var = model.tables.grid.step_rad().powi(2) / 12.0;
-        let rotation_cov = Matrix3::from_fn(|r, c| est.covariance_6x6[r + 3][c + 3]) + Matrix3::identity() * bin_var;
+        // (modulo the object's near-symmetric turns, which leave the surface in place)
+        let rotation_cov = self
+            .state
+            .surface_rotation_cov
+            .unwrap_or_else(|| Matrix3::from_fn(|r, c| est.covariance_6x6[r + 3][c + 3]))
+            + Matrix3::identity() * bin_var;
         // per view: the registered position and its information, both in the reference frame
         let mut fits: Vec<(Vector3<f64>, Matrix3<f64>)> = Vec::new();
         let mut fresh: Vec<super::CarriedFit> = Vec::new();
@@ -787,7 +792,9 @@ impl TrackUpdate<'_> {
                 &mean_hist,
                 s.rotation.as_ref(),
                 &self.config.estimate,
+                &self.models[s.model].turns,
             );
+            let surface_cov = summary.surface_covariance;
             let rotation_hist = summary.rotation;
             let to_ref = s.reference_from_hist.rotation;
             summary.rotation = to_ref * rotation_hist;
@@ -819,10 +826,11 @@ impl TrackUpdate<'_> {
                 status,
                 stamp_ns: self.stamp_ns,
             };
-            (est, rotation_hist)
+            (est, rotation_hist, surface_cov)
         };
         self.state.rotation = Some(est.1);
         self.state.estimate = Some(est.0);
+        self.state.surface_rotation_cov = Some(est.2);
     }
 
     fn detection_holds(&self, frame: &CameraFrame, det: &crate::tracker::Detection, view_from_ref: &Pose) -> bool {
