@@ -658,7 +658,7 @@ pub fn summarise_rotation(
             }
         }
     };
-    let turns: Vec<UnitQuaternion<f64>> = turns.iter().map(|t| UnitQuaternion::from_matrix(t)).collect();
+    let turns: Vec<UnitQuaternion<f64>> = turns.iter().map(UnitQuaternion::from_matrix).collect();
     let (mut cov, mut surface_cov) = (Matrix3::zeros(), Matrix3::zeros());
     let mut wsum = 0.0;
     for (q, m) in &top {
