@@ -372,46 +372,45 @@ impl GripperShapes {
             if !aligned {
                 continue;
             }
-            // the pad where it first touches; the groove (the middle of the pad) at the same
-            // place: does it touch as well (within the tolerance), and at what normal?
-            // (backed off a little so that both are apart: a distance, not a penetration query)
-            let back_off = CONTACT_BACK_OFF_M.min(pad_toi);
-            let at = PPose::from_translation(self.pad_pose[k].translation + vel * (pad_toi - back_off));
-            let near = |shape: &Cuboid| {
-                query::contact(&at, shape, obj_pose, obj, CONTACT_PREDICTION_M)
-                    .ok()
-                    .flatten()
-            };
-            let (Some(cp), Some(cg)) = (near(&self.pad), near(&self.groove)) else {
-                if stop_at_misalignment {
-                    return (true, false);
-                }
-                aligned = false;
-                continue;
-            };
-            // object normals (outward, gripper frame); they must face the pad (+side x)
-            let n_pad = convert::vector_from_parry(cp.normal2).normalize();
-            let n_gr = convert::vector_from_parry(cg.normal2).normalize();
-            let outward = Vector3::new(side as f64, 0.0, 0.0);
-            if n_pad.dot(&outward) < self.cos_capture {
-                if stop_at_misalignment {
-                    return (true, false);
-                }
-                aligned = false;
-                continue;
-            }
-            aligned = if cg.dist - cp.dist <= GROOVE_TOLERANCE_M {
-                // the contact lies in the groove's mouth: the V walls centre it
-                true
-            } else {
-                // the pad met a flat face at its edge: closing squares the face onto the pad
-                n_gr.dot(&n_pad) >= SAME_FACE_DEG.to_radians().cos()
-            };
+            aligned = self.pad_aligned(k, side, pad_toi, obj_pose, obj);
             if stop_at_misalignment && !aligned {
                 return (true, false);
             }
         }
         (true, aligned)
+    }
+
+    /// Whether finger `k` (closing towards `-side` x), first touching after `pad_toi`, meets
+    /// the object inside its capture funnel.
+    fn pad_aligned(&self, k: usize, side: f32, pad_toi: f32, obj_pose: &PPose, obj: &dyn Shape) -> bool {
+        let vel = PVector::new(-side, 0.0, 0.0);
+        // the pad where it first touches; the groove (the middle of the pad) at the same
+        // place: does it touch as well (within the tolerance), and at what normal?
+        // (backed off a little so that both are apart: a distance, not a penetration query)
+        let back_off = CONTACT_BACK_OFF_M.min(pad_toi);
+        let at = PPose::from_translation(self.pad_pose[k].translation + vel * (pad_toi - back_off));
+        let near = |shape: &Cuboid| {
+            query::contact(&at, shape, obj_pose, obj, CONTACT_PREDICTION_M)
+                .ok()
+                .flatten()
+        };
+        let (Some(cp), Some(cg)) = (near(&self.pad), near(&self.groove)) else {
+            return false;
+        };
+        // object normals (outward, gripper frame); they must face the pad (+side x)
+        let n_pad = convert::vector_from_parry(cp.normal2).normalize();
+        let n_gr = convert::vector_from_parry(cg.normal2).normalize();
+        let outward = Vector3::new(side as f64, 0.0, 0.0);
+        if n_pad.dot(&outward) < self.cos_capture {
+            return false;
+        }
+        if cg.dist - cp.dist <= GROOVE_TOLERANCE_M {
+            // the contact lies in the groove's mouth: the V walls centre it
+            true
+        } else {
+            // the pad met a flat face at its edge: closing squares the face onto the pad
+            n_gr.dot(&n_pad) >= SAME_FACE_DEG.to_radians().cos()
+        }
     }
 }
 
