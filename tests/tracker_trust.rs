@@ -136,6 +136,29 @@ fn still_cameras_verify_a_track_once() {
     );
 }
 
+#[test]
+fn views_where_the_object_is_small_do_not_verify() {
+    // the mug spans a few dozen pixels in these 160 x 120 views: a limit above that leaves
+    // both modes unverified, one below it verifies as before
+    let limited = |min_object_px| VerificationConfig {
+        min_mode_mass: 0.1,
+        min_object_px,
+        ..VerificationConfig::default()
+    };
+    let (t_far, f_far, v_far) = flip_densities(limited(1000.0));
+    assert_eq!(v_far, 0, "no view is near enough");
+    assert!(
+        t_far < 3.0 * f_far,
+        "both modes stay: truth {t_far:.3e} flip {f_far:.3e}"
+    );
+    let (t_near, f_near, v_near) = flip_densities(limited(5.0));
+    assert!(v_near >= 1);
+    assert!(
+        t_near > 20.0 * f_near,
+        "the flip is rejected: truth {t_near:.3e} flip {f_near:.3e}"
+    );
+}
+
 /// Three cameras see the box at `a`; the track starts on a look-alike (`decoy`, the same mesh
 /// under another name, so no detection of `box` is there). Returns the step (10 Hz) at which
 /// the track's error fell below 3 cm and stayed there, and its last re-initialisation.

@@ -90,7 +90,7 @@ pub fn calibration_settings(
     // defaults: that map was fitted with the verification off, where they have no effect
     let defaults = serde_json::to_value(crate::tracker::VerificationConfig::default()).unwrap_or_default();
     if let Some(v) = tracker.pointer_mut("/verification").and_then(|v| v.as_object_mut()) {
-        for key in ["occlusion_truncation", "min_view_change_deg"] {
+        for key in ["occlusion_truncation", "min_view_change_deg", "min_object_px"] {
             if v.get(key) == defaults.get(key) {
                 v.remove(key);
             }
@@ -342,6 +342,9 @@ mod tests {
         let mut t5 = t.clone();
         t5.verification.min_view_change_deg = 10.0;
         assert_ne!(h, calibration_settings_hash(&t5, &c, 10, &g));
+        let mut t7 = t.clone();
+        t7.verification.min_object_px = 90.0;
+        assert_ne!(h, calibration_settings_hash(&t7, &c, 10, &g));
         // and so do the registration's
         let mut t6 = t.clone();
         t6.registration.information_scale = 0.5;

@@ -38,6 +38,11 @@ pub struct VerificationConfig {
     /// repeat the same misfit of a wrong shape, not independent evidence.
     #[serde(default)]
     pub min_view_change_deg: f64,
+    /// A view verifies only when the object's diameter spans at least this many pixels at the
+    /// track's mean (0: every view). In a far crop a mug's handle is a few pixels and the
+    /// scorer compares noise; near, it tells the handle's side apart in almost every view.
+    #[serde(default)]
+    pub min_object_px: f64,
 }
 
 impl Default for VerificationConfig {
@@ -50,6 +55,7 @@ impl Default for VerificationConfig {
             truncation: 4.0,
             occlusion_truncation: default_occlusion_truncation(),
             min_view_change_deg: 0.0,
+            min_object_px: 0.0,
             pixels_per_observation: 64.0,
         }
     }

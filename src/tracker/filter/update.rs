@@ -570,6 +570,11 @@ impl TrackUpdate<'_> {
         let mean_hist = hist_from_ref * Point3::from(mean_ref.vector);
         let mut fresh: Vec<(String, Vector3<f64>)> = Vec::new();
         for (frame, view_from_ref, _) in views.iter().filter(|v| seen_by.contains(&v.0.camera)) {
+            // the object's diameter in pixels at the track's mean: far crops are not verified
+            let depth_m = (view_from_ref * Point3::from(mean_ref.vector)).z;
+            if depth_m <= 0.0 || frame.intrinsics.fx() * model.codebook.diameter_m / depth_m < cfg.min_object_px {
+                continue;
+            }
             let camera_hist = hist_from_ref * (view_from_ref.inverse() * Point3::origin());
             let Some(dir) = (camera_hist - mean_hist).try_normalize(1e-9) else {
                 continue;
