@@ -79,6 +79,13 @@ impl Default for ObservationConfig {
     }
 }
 
+/// How many pixels the object of `codebook` spans in a view at `depth_m` (its diameter over
+/// the range; a range under 5 cm counts as 5 cm): what the size weighting and the
+/// verification's near-view limit read.
+pub fn object_size_px(codebook: &Codebook, intrinsics: &Intrinsics, depth_m: f64) -> f64 {
+    codebook.box_m() * intrinsics.fx() / depth_m.max(0.05)
+}
+
 /// How much of its log-likelihood a view counts with for an object `size_px` across (see
 /// [`ObservationConfig::full_size_px`]).
 pub fn size_strength(size_px: f32, config: &ObservationConfig) -> f32 {

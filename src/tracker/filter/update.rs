@@ -183,7 +183,7 @@ impl TrackUpdate<'_> {
                 positions_in_view_m: positions,
                 q,
                 dense_map: None,
-                size_px: (codebook.box_m() * frame.intrinsics.fx() / mean_view.z.max(0.05)) as f32,
+                size_px: crate::tracker::observation::object_size_px(&codebook, &frame.intrinsics, mean_view.z) as f32,
             });
         }
 
@@ -572,7 +572,10 @@ impl TrackUpdate<'_> {
         for (frame, view_from_ref, _) in views.iter().filter(|v| seen_by.contains(&v.0.camera)) {
             // the object's diameter in pixels at the track's mean: far crops are not verified
             let depth_m = (view_from_ref * Point3::from(mean_ref.vector)).z;
-            if depth_m <= 0.0 || frame.intrinsics.fx() * model.codebook.diameter_m / depth_m < cfg.min_object_px {
+            if depth_m <= 0.0
+                || crate::tracker::observation::object_size_px(&model.codebook, &frame.intrinsics, depth_m)
+                    < cfg.min_object_px
+            {
                 continue;
             }
             let camera_hist = hist_from_ref * (view_from_ref.inverse() * Point3::origin());
