@@ -2,7 +2,7 @@
 //! flipped rotation mode rejected by the verification against the depth images (at every step,
 //! or once while the cameras stand still), a wrong start recovered when the cameras see the
 //! object elsewhere, and two instances of one object that do not make a track jump back and
-//! forth.
+//! forth; and a near, well-matched track blurred less than a poorly matched one.
 
 #![allow(clippy::unwrap_used)] // test helpers: a failure is a test failure
 
@@ -11,8 +11,8 @@ mod tracker_support;
 use nalgebra::{UnitQuaternion, Vector3};
 use pregrasp::geometry::Pose;
 use pregrasp::tracker::{
-    CameraFrame, CameraMount, RegistrationConfig, ReinitReason, TrackPrior, TrackStatus, Tracker, TrackerConfig,
-    VerificationConfig,
+    CameraFrame, CameraMount, NearBlur, RegistrationConfig, ReinitReason, TrackPrior, TrackStatus, Tracker,
+    TrackerConfig, VerificationConfig,
 };
 use std::collections::BTreeMap;
 use tracker_support::*;
@@ -374,4 +374,71 @@ fn unsynchronised_cameras_combine_their_registrations() {
     );
     assert!(err < 0.004, "error {err:.4} m");
     assert!(d2 < 11.3, "the truth at Mahalanobis^2 {d2:.2}");
+}
+
+/// A box near two cameras, tracked for five steps from a start 0.3 rad off: the rotation
+/// entropy of the estimate and the track's best similarity.
+fn near_box_entropy(near_blur: Option<NearBlur>) -> (f64, f64) {
+    let mesh = pregrasp::mesh::builtin("box").unwrap();
+    let cb = coarse_codebook(&mesh);
+    let truth_world = on_table(&mesh, 0.0, 0.0, 0.5);
+    let scene = Scene::new(vec![("box".into(), mesh.clone(), truth_world)]);
+    let cams = [
+        ("a", look_at([0.45, -0.15, 0.35], [0.0, 0.0, 0.1])),
+        ("b", look_at([-0.15, -0.45, 0.3], [0.0, 0.0, 0.1])),
+    ];
+    let config = TrackerConfig {
+        max_tracks_per_object: 1,
+        near_blur,
+        ..TrackerConfig::default()
+    };
+    let mut tracker = Tracker::new(config, stationary(&cams), "a".into());
+    tracker.add_object_model("box", mesh.clone(), cb);
+    let truth = cams[0].1.inverse() * truth_world;
+    let mut start = truth;
+    start.rotation = UnitQuaternion::from_euler_angles(0.2, -0.15, 0.15) * start.rotation;
+    let id = tracker
+        .start_track(
+            "box",
+            &TrackPrior {
+                reference_from_object: start,
+                translation_std_m: 0.01,
+                rotation_std_rad: Some(0.3),
+            },
+        )
+        .unwrap();
+    for step in 0..5u64 {
+        tracker.step(&frames(&cams, &scene, false, step), None).unwrap();
+    }
+    let e = tracker.estimate(id).unwrap();
+    let best = tracker.tracks()[0].best_similarity.unwrap();
+    (e.rotation_entropy, best)
+}
+
+#[test]
+fn near_well_matched_tracks_are_blurred_less() {
+    let (entropy, best) = near_box_entropy(None);
+    let lighter = NearBlur {
+        sigma_bins: 0.3,
+        full_m: 2.0,
+        until_m: 3.0,
+        from_similarity: 0.0,
+        full_similarity: 0.01,
+    };
+    let (sharp, _) = near_box_entropy(Some(lighter));
+    // the same, but asking for a closer match than the box's codes give
+    let demanding = NearBlur {
+        from_similarity: best + 0.001,
+        full_similarity: best + 0.002,
+        ..lighter
+    };
+    let (kept, _) = near_box_entropy(Some(demanding));
+    eprintln!(
+        "rotation entropy: full blur {entropy:.3}, lighter {sharp:.3}, demanding {kept:.3}; best similarity {best:.3}"
+    );
+    assert!(
+        sharp < entropy - 0.3,
+        "a lighter blur narrows the rotation: {sharp:.3} against {entropy:.3}"
+    );
+    assert_eq!(kept, entropy, "a poorer match than asked keeps the full blur");
 }

@@ -96,6 +96,12 @@ pub fn calibration_settings(
             }
         }
     }
+    // so is a near blur, added after it too, when off
+    if let Some(t) = tracker.as_object_mut()
+        && t.get("near_blur").is_some_and(|v| v.is_null())
+    {
+        t.remove("near_blur");
+    }
     serde_json::json!({
         "tracker": tracker,
         "codebook": codebook,
@@ -345,6 +351,15 @@ mod tests {
         let mut t7 = t.clone();
         t7.verification.min_object_px = 90.0;
         assert_ne!(h, calibration_settings_hash(&t7, &c, 10, &g));
+        let mut t8 = t.clone();
+        t8.near_blur = Some(crate::tracker::NearBlur {
+            sigma_bins: 0.5,
+            full_m: 1.0,
+            until_m: 1.4,
+            from_similarity: 0.85,
+            full_similarity: 0.9,
+        });
+        assert_ne!(h, calibration_settings_hash(&t8, &c, 10, &g));
         // and so do the registration's
         let mut t6 = t.clone();
         t6.registration.information_scale = 0.5;

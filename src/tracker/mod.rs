@@ -71,7 +71,7 @@ pub use crate::sensor::{CameraFrame, CameraMount, Detection, RobotOdometry};
 pub use codebook::{Codebook, CodebookConfig, ColorFeatures};
 pub use encoder::{Encoder, LinearDenoisingEncoder};
 pub use filter::{
-    RecoveryConfig, RegistrationConfig, SpreadConfig, TrackPrior, TrackSnapshot, Tracker, TrackerConfig,
+    NearBlur, RecoveryConfig, RegistrationConfig, SpreadConfig, TrackPrior, TrackSnapshot, Tracker, TrackerConfig,
     TrackerSnapshot, VerificationConfig,
 };
 
