@@ -276,28 +276,38 @@ fn two_instances_do_not_make_a_track_oscillate() {
     assert!(switches <= 1, "the track switched instances {switches} times");
 }
 
+/// A built-in object standing on the table at the origin (turned by `yaw_rad`) in front of
+/// stationary cameras, the first the reference: a tracker with its coarse codebook (one track
+/// per object), the scene and the object's true pose in the reference camera.
+fn object_on_table(name: &str, yaw_rad: f64, cams: &[(&str, Pose)], config: TrackerConfig) -> (Tracker, Scene, Pose) {
+    let mesh = pregrasp::mesh::builtin(name).unwrap();
+    let cb = coarse_codebook(&mesh);
+    let truth_world = on_table(&mesh, 0.0, 0.0, yaw_rad);
+    let scene = Scene::new(vec![(name.into(), mesh.clone(), truth_world)]);
+    let config = TrackerConfig {
+        max_tracks_per_object: 1,
+        ..config
+    };
+    let mut tracker = Tracker::new(config, stationary(cams), cams[0].0.into());
+    tracker.add_object_model(name, mesh, cb);
+    (tracker, scene, cams[0].1.inverse() * truth_world)
+}
+
 /// A can seen near by two cameras; the track starts 1.5 cm off with its rotation known. Returns
 /// the reported position's error after the steps, the reported translation std, and the
 /// squared Mahalanobis distance of the truth under the reported covariance. `staggered`: each
 /// step brings one camera's frame, in turn (unsynchronised cameras, as the service gets them),
 /// over ten steps instead of both cameras' over five.
 fn near_can(registration: RegistrationConfig, staggered: bool) -> (f64, f64, f64, usize) {
-    let mesh = pregrasp::mesh::builtin("can").unwrap();
-    let cb = coarse_codebook(&mesh);
-    let truth_world = on_table(&mesh, 0.0, 0.0, 0.4);
-    let scene = Scene::new(vec![("can".into(), mesh.clone(), truth_world)]);
     let cams = [
         ("a", look_at([0.3, -0.12, 0.25], [0.0, 0.0, 0.05])),
         ("b", look_at([-0.1, -0.32, 0.22], [0.0, 0.0, 0.05])),
     ];
     let config = TrackerConfig {
-        max_tracks_per_object: 1,
         registration,
         ..TrackerConfig::default()
     };
-    let mut tracker = Tracker::new(config, stationary(&cams), "a".into());
-    tracker.add_object_model("can", mesh.clone(), cb);
-    let truth = cams[0].1.inverse() * truth_world;
+    let (mut tracker, scene, truth) = object_on_table("can", 0.4, &cams, config);
     let mut start = truth;
     start.translation.vector += Vector3::new(0.009, -0.008, 0.009);
     let id = tracker
@@ -379,22 +389,15 @@ fn unsynchronised_cameras_combine_their_registrations() {
 /// A box near two cameras, tracked for five steps from a start 0.3 rad off: the rotation
 /// entropy of the estimate and the track's best similarity.
 fn near_box_entropy(near_blur: Option<NearBlur>) -> (f64, f64) {
-    let mesh = pregrasp::mesh::builtin("box").unwrap();
-    let cb = coarse_codebook(&mesh);
-    let truth_world = on_table(&mesh, 0.0, 0.0, 0.5);
-    let scene = Scene::new(vec![("box".into(), mesh.clone(), truth_world)]);
     let cams = [
         ("a", look_at([0.45, -0.15, 0.35], [0.0, 0.0, 0.1])),
         ("b", look_at([-0.15, -0.45, 0.3], [0.0, 0.0, 0.1])),
     ];
     let config = TrackerConfig {
-        max_tracks_per_object: 1,
         near_blur,
         ..TrackerConfig::default()
     };
-    let mut tracker = Tracker::new(config, stationary(&cams), "a".into());
-    tracker.add_object_model("box", mesh.clone(), cb);
-    let truth = cams[0].1.inverse() * truth_world;
+    let (mut tracker, scene, truth) = object_on_table("box", 0.5, &cams, config);
     let mut start = truth;
     start.rotation = UnitQuaternion::from_euler_angles(0.2, -0.15, 0.15) * start.rotation;
     let id = tracker
