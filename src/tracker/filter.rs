@@ -132,10 +132,10 @@ pub struct TrackerConfig {
 
 /// The rotation blur of a track that is near and well explained. The blur is process noise
 /// that lets a wrong mode go while the views are far and their codes ambiguous; where a near
-/// view's codes match the crop closely (the generated sequences' near views at a best
-/// similarity of 0.89-0.98) a full bin of it widens every histogram past the error, while
-/// where they match it poorly (the real clip: 0.72-0.76) the codes leave the rotation open
-/// and the full blur keeps it so. The sigma goes from [`TrackerConfig::blur_sigma_bins`] to
+/// view's codes match the crop closely (the generated sequences) a full bin of it widens every
+/// histogram past the error, while where they match it poorly (the real clip) the codes leave
+/// the rotation open and the full blur keeps it so (`docs/decisions.md`, "A lighter blur for
+/// near, well-matched tracks"). The sigma goes from [`TrackerConfig::blur_sigma_bins`] to
 /// `sigma_bins` by the product of two ramps: the distance of the track's mean from the
 /// reference camera (1 at `full_m` and nearer, 0 at `until_m` and further) and the track's
 /// best similarity of the last step (0 at `from_similarity` and below, 1 at
