@@ -86,21 +86,21 @@ pub fn calibration_settings(
     let mut codebook = codebook.clone();
     codebook.seed = 0;
     let mut tracker = serde_json::to_value(&tracker).unwrap_or_default();
-    // verification settings added after the shipped map was fitted are left out at their
-    // defaults: that map was fitted with the verification off, where they have no effect
-    let defaults = serde_json::to_value(crate::tracker::VerificationConfig::default()).unwrap_or_default();
-    if let Some(v) = tracker.pointer_mut("/verification").and_then(|v| v.as_object_mut()) {
-        for key in ["occlusion_truncation", "min_view_change_deg", "min_object_px"] {
-            if v.get(key) == defaults.get(key) {
-                v.remove(key);
-            }
+    // settings added after the shipped map was fitted are left out at their defaults: that
+    // map was fitted with the verification and the near blur off, where they have no effect
+    let defaults = serde_json::to_value(TrackerConfig::default()).unwrap_or_default();
+    for (parent, key) in [
+        ("/verification", "occlusion_truncation"),
+        ("/verification", "min_view_change_deg"),
+        ("/verification", "min_object_px"),
+        ("", "near_blur"),
+    ] {
+        let default = defaults.pointer(parent).and_then(|d| d.get(key)).cloned();
+        if let Some(v) = tracker.pointer_mut(parent).and_then(|v| v.as_object_mut())
+            && v.get(key).cloned() == default
+        {
+            v.remove(key);
         }
-    }
-    // so is a near blur, added after it too, when off
-    if let Some(t) = tracker.as_object_mut()
-        && t.get("near_blur").is_some_and(|v| v.is_null())
-    {
-        t.remove("near_blur");
     }
     serde_json::json!({
         "tracker": tracker,

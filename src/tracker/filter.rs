@@ -149,15 +149,11 @@ pub struct NearBlur {
     pub full_similarity: f64,
 }
 
-/// 1 at `full` and beyond it, 0 at `zero` and beyond that side, linear between (a step at
-/// `full` when the two are equal).
+/// 0 at `zero` and below, 1 at `full` and above (`full >= zero`), linear between; a step at
+/// `full` when the two are equal.
 fn ramp(x: f64, zero: f64, full: f64) -> f64 {
-    if zero == full {
-        return if (full >= zero && x >= full) || (full < zero && x <= full) {
-            1.0
-        } else {
-            0.0
-        };
+    if full <= zero {
+        return f64::from(u8::from(x >= full));
     }
     ((x - zero) / (full - zero)).clamp(0.0, 1.0)
 }
@@ -729,14 +725,7 @@ impl Tracker {
             if s.n() > 0 {
                 let tables = &self.models[s.model].tables;
                 let near_kernel = self.config.near_blur.map(|nb| {
-                    let wsum: f64 = s.weights.iter().sum();
-                    let mean = s
-                        .positions
-                        .iter()
-                        .zip(&s.weights)
-                        .map(|(p, w)| p * *w)
-                        .sum::<Vector3<f64>>()
-                        / wsum.max(f64::MIN_POSITIVE);
+                    let mean = s.set(tables, self.config.spread).mean_position();
                     let sigma = nb.sigma_at(mean.norm(), track.best_similarity, self.config.blur_sigma_bins);
                     gaussian_kernel(self.config.blur_radius_bins, sigma)
                 });
