@@ -3,7 +3,8 @@
 //! fails, which direction of uncertainty drives it).
 
 use super::calibrated::{Calibration, CalibrationStatus, GraspRule, SmoothingStatus};
-use super::candidates::{Grasp, generate_candidates};
+use super::candidates::Grasp;
+use super::placement::placed_candidates;
 use super::{GraspError, GraspObject, Gripper, SupportPlane, convert};
 use crate::geometry::{Pose, PoseSamples};
 use nalgebra::{Point3, Vector3};
@@ -16,7 +17,7 @@ use serde::{Deserialize, Serialize};
 /// Version of the decision's own procedure (how candidates are generated, chosen and checked).
 /// It is part of the settings a calibration map is fitted for: bump it when a change moves the
 /// raw rate of the same samples, so that maps fitted before it are refused as stale.
-pub const DECISION_PROCEDURE_VERSION: u32 = 1;
+pub const DECISION_PROCEDURE_VERSION: u32 = 2;
 /// Default number of pose samples.
 pub const DEFAULT_N_SAMPLES: usize = 1000;
 /// Default threshold on the lower bound of the 95% interval.
@@ -531,7 +532,7 @@ struct Evaluated {
 
 /// What every candidate is planned and checked against: the object at the estimate, the
 /// gripper and the table.
-struct Planning<'a> {
+pub(super) struct Planning<'a> {
     object: &'a GraspObject,
     gripper: &'a Gripper,
     shapes: GripperShapes,
@@ -540,7 +541,12 @@ struct Planning<'a> {
 }
 
 impl<'a> Planning<'a> {
-    fn new(object: &'a GraspObject, gripper: &'a Gripper, estimate: &'a Pose, plane: Option<&'a SupportPlane>) -> Self {
+    pub(super) fn new(
+        object: &'a GraspObject,
+        gripper: &'a Gripper,
+        estimate: &'a Pose,
+        plane: Option<&'a SupportPlane>,
+    ) -> Self {
         Self {
             object,
             gripper,
@@ -560,7 +566,7 @@ impl<'a> Planning<'a> {
 
     /// How many of `poses` the grasp passes every test on (what ranking needs; the full
     /// outcomes are only computed for the grasp chosen).
-    fn count_successes(&self, poses: &[Pose], grasp: &Grasp) -> Result<usize, GraspError> {
+    pub(super) fn count_successes(&self, poses: &[Pose], grasp: &Grasp) -> Result<usize, GraspError> {
         let (reference_from_gripper, table_clear) = self.planned(grasp)?;
         if !table_clear {
             return Ok(0);
@@ -589,9 +595,10 @@ impl<'a> Planning<'a> {
 
 /// Plans the grasp on `estimate` (reference_from_object) and checks it on the samples.
 ///
-/// With `query.grasp == None`, the candidates of [`generate_candidates`] are screened on the
-/// first [`SCREEN_SAMPLES`] samples, the best [`SCREEN_KEEP`] evaluated on all, and the one
-/// with the highest p_success is chosen (all are returned, fully evaluated ones first).
+/// With `query.grasp == None`, the candidates of [`placed_candidates`] (the centred ones and
+/// those moved to keep their margin) are screened on the first [`SCREEN_SAMPLES`] samples, the
+/// best [`SCREEN_KEEP`] evaluated on all, and the one with the highest p_success is chosen (all
+/// are returned, fully evaluated ones first).
 /// `p_success` is the share of samples passing every test; its 95% Wilson interval uses the
 /// effective sample size (scaled to the samples used, at most their number). The verdict is
 /// `Grasp` only when the interval's lower bound reaches `query.threshold`. No calibration map:
@@ -676,7 +683,7 @@ pub fn decide_calibrated(
             (g.clone(), e, Vec::new())
         }
         None => {
-            let cands = generate_candidates(object, gripper);
+            let cands = placed_candidates(object, gripper)?.to_vec();
             if cands.is_empty() {
                 return Err(GraspError::NoCandidate(format!(
                     "every principal width exceeds the stroke of {} m",
@@ -972,6 +979,7 @@ fn reasons(outcomes: &[PoseOutcome], offsets: &[[f64; 6]], frames: GraspFrames) 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::grasp::candidates::generate_candidates;
 
     #[test]
     fn wilson_matches_known_values() {

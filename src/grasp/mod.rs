@@ -74,6 +74,7 @@ pub mod decision;
 pub mod gripper;
 pub mod hull;
 pub mod object;
+pub mod placement;
 pub mod view;
 
 pub use calibrated::{
@@ -88,6 +89,7 @@ pub use decision::{
 };
 pub use gripper::{Gripper, PadGeometry};
 pub use object::{GraspObject, SolidKind};
+pub use placement::{cached_placements, placed_candidates, search_placements};
 pub use view::{CandidateView, ViewSuggestion, suggest_view};
 
 use serde::{Deserialize, Serialize};
