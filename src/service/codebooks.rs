@@ -351,7 +351,15 @@ pub fn spawn_builder(state: Service, stop: Arc<AtomicBool>) -> Option<std::threa
                     }
                 };
                 // only the status of the mesh this build was for (see `set_codebook_status`)
-                set(after);
+                let trackable = i == 0 && after.status == CodebookState::Ready;
+                if set(after) && trackable {
+                    // the object can be tracked now: get its grasps ready before a decision
+                    // asks, on the builders' low-priority pool
+                    match &pool {
+                        Some(p) => p.install(|| state.warm_grasps(&id)),
+                        None => state.warm_grasps(&id),
+                    }
+                }
             }
         })
         .ok()

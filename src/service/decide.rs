@@ -13,6 +13,22 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering;
 
 impl ServiceState {
+    /// Builds an object's solid and places its grasp candidates for every registered gripper
+    /// (`grasp::placed_candidates`, cached), so that the first decision about the object does
+    /// not wait for them (up to a few seconds for a mug on two cores). Failures are left for
+    /// the decision to report.
+    pub fn warm_grasps(&self, object_id: &str) {
+        let Ok(object) = self.grasp_objects.get_or_build(self, object_id) else {
+            return;
+        };
+        let grippers: Vec<_> = self.registry().grippers.values().cloned().collect();
+        for gripper in grippers {
+            if let Err(e) = grasp::placed_candidates(&object, &gripper) {
+                tracing::debug!("grasp candidates of {object_id}: {e}");
+            }
+        }
+    }
+
     /// Runs a decision for a track (blocking: call from a blocking context). The query is
     /// checked before the track is looked up.
     pub fn decide(&self, track_id: u64, params: &DecisionParams) -> Result<Arc<DecisionRecord>, ServiceError> {
@@ -256,6 +272,29 @@ mod tests {
     /// a raw rate between 0.62 and 0.95 from one second to the next), the low one first.
     fn alternating(generation: u64) -> usize {
         if generation.is_multiple_of(2) { 190 } else { 124 }
+    }
+
+    #[test]
+    fn an_objects_grasps_are_placed_before_the_first_decision_asks() {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let service = Service::open(ServiceConfig::new(tmp.path().join("service"))).expect("service");
+        // a box of its own size, so that no other test has placed its grasps in this process
+        let mut mesh = crate::mesh::builtin("box").expect("box");
+        for v in &mut mesh.vertices_m {
+            v[0] *= 0.93;
+        }
+        service.register_object("box", "Box", mesh, true).expect("box");
+        let object = service.grasp_objects.get_or_build(&service, "box").expect("solid");
+        let gripper = service
+            .gripper(crate::service::registry::DEFAULT_GRIPPER)
+            .expect("gripper");
+        assert!(grasp::cached_placements(&object, &gripper).is_none());
+        service.warm_grasps("box");
+        let warmed = grasp::cached_placements(&object, &gripper).expect("placed by the warm-up");
+        let asked = grasp::placed_candidates(&object, &gripper).expect("candidates");
+        assert!(Arc::ptr_eq(&warmed, &asked), "the decision reads the warmed list");
+        // an unknown object is left for the decision to report
+        service.warm_grasps("nothing");
     }
 
     #[test]
