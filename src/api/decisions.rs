@@ -132,7 +132,9 @@ pub struct GraspView {
     pub depth_m: f64,
     /// Width of the object's hull along the closing axis.
     pub width_m: f64,
-    /// Human-readable name, e.g. `approach -a2, close a1` (a0 = longest principal axis).
+    /// Human-readable name, e.g. `approach -a2, close a1` (a0 = longest principal axis);
+    /// ending in `, placed` when the grasp was moved from the hull's centre to where pose noise
+    /// fails it least.
     pub label: String,
 }
 
