@@ -94,9 +94,9 @@ fn key(object: &GraspObject, gripper: &Gripper) -> Key {
 /// [`placed_candidates`] without the cache: the centred candidates and the search (what the
 /// first decision about an object pays; `cargo bench --bench grasp -- place`).
 pub fn search_placements(object: &GraspObject, gripper: &Gripper) -> Result<Vec<Grasp>, GraspError> {
-    let centred = generate_candidates(object, gripper);
-    let mut all = centred.clone();
-    all.extend(place(object, gripper, &centred)?);
+    let mut all = generate_candidates(object, gripper);
+    let placed = place(object, gripper, &all)?;
+    all.extend(placed);
     Ok(all)
 }
 
