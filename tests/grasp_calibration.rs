@@ -1,9 +1,12 @@
-//! When the ground truth is drawn from the same distribution as the samples, the predicted
-//! p_success is calibrated by construction: the reliability table must show it, and
-//! `success_on_pose` must agree with the decision's own per-sample tests.
+//! The decision scores its grasp on the samples with their rotation offsets scaled by
+//! `SCORE_ROTATION_SHARE` (and translation offsets by `SCORE_TRANSLATION_SHARE`): when the
+//! ground truth is drawn from that narrower distribution, the raw p_success is calibrated by
+//! construction. The reliability table must show it, and `success_on_pose` on the drawn samples
+//! must agree with the decision's own per-sample tests.
 
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 use pregrasp::geometry::{Pose, PoseSamples};
+use pregrasp::grasp::decision::{SCORE_ROTATION_SHARE, SCORE_TRANSLATION_SHARE, drawn_towards};
 use pregrasp::grasp::{
     CalibrationRecord, DecisionQuery, Grasp, GraspObject, Gripper, SupportPlane, calibration_report, decide,
     success_on_pose,
@@ -54,14 +57,20 @@ fn predicted_p_matches_outcomes_on_truth_from_the_same_distribution() {
         };
         let d = decide(&can, &gripper, &est, &samples, &query).unwrap();
         if frame < 3 {
-            // the helper replays exactly the decision's tests
-            let k = poses
+            // the helper replays exactly the decision's tests on the drawn samples
+            let drawn = drawn_towards(&poses, &est, SCORE_TRANSLATION_SHARE, SCORE_ROTATION_SHARE);
+            let k = drawn
                 .iter()
                 .filter(|p| success_on_pose(&can, &gripper, &d.reference_from_gripper, p, Some(&plane)).unwrap())
                 .count();
             assert!((k as f64 / 300.0 - d.p_success).abs() < 1e-12);
         }
-        let truth = draw(&est, t_std, r_std, &mut rng);
+        let truth = draw(
+            &est,
+            t_std * SCORE_TRANSLATION_SHARE,
+            r_std * SCORE_ROTATION_SHARE,
+            &mut rng,
+        );
         let ok = d.success_on_pose(&can, &gripper, &truth, Some(&plane)).unwrap();
         records.push(CalibrationRecord::from_decision(&d, ok));
     }
