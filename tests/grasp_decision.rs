@@ -415,6 +415,7 @@ fn test_map(hash: &str) -> pregrasp::grasp::CalibrationMap {
         n_decisions: 1000,
         n_successes: 685,
         n_approaches: 10,
+        n_samples: None,
         blocks: vec![
             IsotonicBlock {
                 raw_lo: 0.0,

@@ -34,7 +34,9 @@ pub struct DecisionRequest {
     pub grasp: Option<GraspIn>,
     /// The table in the world frame; absent: the scene's support plane (if any).
     pub support_plane: Option<PlaneDto>,
-    /// Poses drawn from the distribution (default 1,000, at most 5,000).
+    /// Poses drawn from the distribution (default 1,000, at most 5,000). The calibration map
+    /// was fitted on answers of 1,000: fewer give the raw rate, uncalibrated (`calibration`
+    /// says so), because a rate of fewer samples is more often high by luck.
     pub n_samples: Option<usize>,
     /// The threshold of the rule in force, in (0, 1]: on the calibrated `p_success` (or its
     /// lower bound) when the service's calibration map fits its settings, else on the lower
@@ -543,6 +545,7 @@ mod tests {
             n_decisions: 100,
             n_successes: 90,
             n_approaches: 1,
+            n_samples: None,
             blocks: vec![IsotonicBlock {
                 raw_lo: 0.0,
                 raw_hi: 1.0,

@@ -146,7 +146,15 @@ pub struct DecisionRecords {
     pub settings: serde_json::Value,
     /// The data set evaluated (as given on the command line).
     pub data: String,
+    /// Pose samples each decision drew (`eval --samples`); runs from before it was recorded
+    /// drew eval's default.
+    #[serde(default = "default_record_samples")]
+    pub n_samples: usize,
     pub decisions: Vec<DecisionOutcome>,
+}
+
+fn default_record_samples() -> usize {
+    crate::grasp::decision::DEFAULT_N_SAMPLES
 }
 
 fn records<'a>(outcomes: impl Iterator<Item = &'a DecisionOutcome>) -> Vec<CalibrationRecord> {

@@ -176,7 +176,8 @@ impl Args {
                     Calibration::load(&text, &hash)
                 }
                 None => Calibration::shipped(&hash),
-            };
+            }
+            .for_samples(d.n_samples);
             d.threshold = self.threshold.unwrap_or(d.calibration.rule().threshold);
         }
         Ok(cfg)

@@ -90,6 +90,14 @@ pub fn load_records(paths: &[PathBuf]) -> Result<DecisionRecords, EvalError> {
                         m.settings_hash
                     )));
                 }
+                if m.n_samples != r.n_samples {
+                    return Err(EvalError::Config(format!(
+                        "{} drew {} pose samples per decision, the others {}",
+                        p.display(),
+                        r.n_samples,
+                        m.n_samples
+                    )));
+                }
                 m.data = format!("{}, {}", m.data, r.data);
                 m.decisions.extend(r.decisions);
             }
@@ -238,6 +246,7 @@ pub fn fit_map(
         n_decisions: points.len(),
         n_successes: points.iter().filter(|p| p.1).count(),
         n_approaches: approaches(&records.decisions).len(),
+        n_samples: Some(records.n_samples),
         blocks,
         rule: GraspRule {
             quantity: RuleQuantity::Calibrated,
@@ -411,6 +420,7 @@ pub fn choose_rule_cross_fitted(
                 settings_hash: records.settings_hash.clone(),
                 settings: records.settings.clone(),
                 data: records.data.clone(),
+                n_samples: records.n_samples,
                 decisions: rest,
             };
             let map = fit_map(
@@ -777,6 +787,15 @@ pub fn calibrate(args: &Args) -> Result<CalibrateOutput, EvalError> {
                 records.settings_hash, map.settings_hash
             )));
         }
+        if let Some(fitted) = map.n_samples
+            && records.n_samples < fitted
+        {
+            return Err(EvalError::Config(format!(
+                "the report's decisions drew {} pose samples each, the map was fitted on {fitted}: \
+                 the service answers those with the raw rate",
+                records.n_samples
+            )));
+        }
         reports.push(report(&map, &records)?);
     }
     Ok(CalibrateOutput {
@@ -967,6 +986,7 @@ mod tests {
             settings_hash: "h".into(),
             settings: serde_json::json!({}),
             data: "synthetic".into(),
+            n_samples: 1000,
             decisions,
         }
     }
@@ -1109,7 +1129,20 @@ mod tests {
         let c = write("c.json", serde_json::json!({"grid_step_deg": 5}));
         let ab = load_records(&[a.clone(), b]).expect("same settings");
         assert_eq!(ab.decisions.len(), 120);
-        assert!(load_records(&[a, c]).is_err());
+        assert!(load_records(&[a.clone(), c]).is_err());
+        // runs that drew other sample counts per decision are not one set either, and the
+        // map keeps the count it was fitted on
+        let mut r = approaches_set(1);
+        r.settings = serde_json::json!({"grid_step_deg": 10});
+        r.n_samples = 300;
+        let d = dir.path().join("d.json");
+        std::fs::write(&d, serde_json::to_string(&r).expect("json")).expect("write");
+        let err = load_records(&[a, d.clone()]).expect_err("other sample counts");
+        assert!(err.to_string().contains("300"), "{err}");
+        let fewer = load_records(&[d]).expect("one run");
+        assert_eq!(fewer.n_samples, 300);
+        let map = fit_map(&fewer, 0.0, MIN_BLOCK_COUNT, &[], Vec::new(), String::new());
+        assert_eq!(map.n_samples, Some(300));
     }
 
     #[test]

@@ -778,6 +778,7 @@ pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>
             settings_hash: crate::grasp::calibrated::settings_hash(&settings),
             settings,
             data: data.display().to_string(),
+            n_samples: dc.n_samples,
             decisions,
         };
         write_json("decisions.json", &records)?;

@@ -192,6 +192,12 @@ pub struct CalibrationMap {
     pub n_decisions: usize,
     pub n_successes: usize,
     pub n_approaches: usize,
+    /// Pose samples each fitted decision drew. An answer that drew fewer gets the raw rate
+    /// ([`Calibration::for_samples`]): its rate is noisier, so at the top of the map, where the
+    /// rule sits, more of its high rates are luck than the map's were. `None` (maps from
+    /// before it was recorded): any count.
+    #[serde(default)]
+    pub n_samples: Option<usize>,
     /// Isotonic blocks, lowest raw rate first; rates non-decreasing.
     pub blocks: Vec<IsotonicBlock>,
     /// The rule chosen on the fitting data by its failures (`pregrasp calibrate`).
@@ -560,6 +566,23 @@ impl Calibration {
         }
     }
 
+    /// The calibration for an answer of `n_samples` pose samples: the raw rate, with the
+    /// reason, when the map was fitted on answers that drew more (see
+    /// [`CalibrationMap::n_samples`]); else unchanged.
+    pub fn for_samples(&self, n_samples: usize) -> Self {
+        match self {
+            Self::Fitted(m) if m.n_samples.is_some_and(|fitted| n_samples < fitted) => Self::Raw {
+                reason: format!(
+                    "the calibration map was fitted on answers of {} pose samples and this one drew \
+                     {n_samples}: p_success is the raw rate and the rule the one without a map \
+                     (ask for n_samples >= {0} for a calibrated answer)",
+                    m.n_samples.unwrap_or_default()
+                ),
+            },
+            other => other.clone(),
+        }
+    }
+
     /// The time constant answers are smoothed with (the map's; 0 without a map).
     pub fn smoothing_time_constant_s(&self) -> f64 {
         self.map().map_or(0.0, |m| m.smoothing_time_constant_s)
@@ -825,6 +848,7 @@ mod tests {
             n_decisions: blocks.iter().map(|b| b.count).sum(),
             n_successes: blocks.iter().map(|b| b.successes).sum(),
             n_approaches: 1,
+            n_samples: None,
             blocks,
             rule,
             smoothing_time_constant_s: tau_s,
@@ -1031,6 +1055,31 @@ mod tests {
             let p = m.apply(0.5 * (a + b), None);
             assert!(l <= p && p <= h, "{a} {b}: {l} {p} {h}");
         }
+    }
+
+    #[test]
+    fn answers_that_drew_fewer_samples_than_the_map_was_fitted_on_stay_raw() {
+        let mut m = map_of(vec![block(0.0, 1.0, 100, 50)], calibrated_rule(0.8, 1), 0.5);
+        m.n_samples = Some(1000);
+        let fitted = Calibration::Fitted(Arc::new(m.clone()));
+        for n in [1000, 5000] {
+            let c = fitted.for_samples(n);
+            assert!(c.map().is_some(), "{n}");
+            assert!(c.calibrate(0.9, [0.85, 0.95], None).2.is_calibrated());
+        }
+        let few = fitted.for_samples(300);
+        assert!(few.map().is_none());
+        assert_eq!(few.rule(), GraspRule::default());
+        let (p, ci, status) = few.calibrate(0.9, [0.85, 0.95], None);
+        assert_eq!((p, ci), (0.9, [0.85, 0.95]));
+        let w = status.warning().expect("a warning");
+        assert!(w.contains("1000") && w.contains("300"), "{w}");
+        // maps from before the count was recorded calibrate any count
+        m.n_samples = None;
+        assert!(Calibration::Fitted(Arc::new(m)).for_samples(10).map().is_some());
+        // the count survives the map's JSON
+        let shipped = CalibrationMap::from_json(SHIPPED_MAP_JSON).expect("shipped map");
+        assert_eq!(shipped.n_samples, Some(crate::grasp::decision::DEFAULT_N_SAMPLES));
     }
 
     #[test]

@@ -77,7 +77,7 @@ impl ServiceState {
         };
         let object = self.grasp_objects.get_or_build(self, &drawn.object_id)?;
         let settings_hash = self.decision_settings_hash(&drawn.object_id, &gripper);
-        let calibration = self.calibrations.for_settings(&settings_hash);
+        let calibration = self.calibrations.for_settings(&settings_hash).for_samples(n);
         let support_plane = plane_world.map(|p| p.transformed(&drawn.world_from_reference.inverse()));
         let query = DecisionQuery {
             n_samples: n,
@@ -168,6 +168,7 @@ mod tests {
             n_decisions: 300,
             n_successes: 179,
             n_approaches: 1,
+            n_samples: None,
             blocks,
             rule: GraspRule {
                 quantity: RuleQuantity::Calibrated,
@@ -226,7 +227,11 @@ mod tests {
         drop(probe);
         let mut config = ServiceConfig::new(tmp.path().join("service"));
         let hash = if fitted_for_running { running } else { "0".repeat(64) };
-        config.calibration_map = Some(Arc::new(test_map(&hash)));
+        // fitted on answers of 200 samples, as `ask` draws
+        config.calibration_map = Some(Arc::new(CalibrationMap {
+            n_samples: Some(200),
+            ..test_map(&hash)
+        }));
         let service = Service::open(config).expect("service");
         service
             .register_object("can", "Can", crate::mesh::builtin("can").expect("can"), true)
@@ -383,6 +388,27 @@ mod tests {
             .register_object("grey", "Grey can", crate::mesh::builtin("can").expect("can"), false)
             .expect("grey");
         assert_ne!(service.decision_settings_hash("grey", &gripper), fitted);
+    }
+
+    #[test]
+    fn an_answer_of_fewer_samples_than_the_map_was_fitted_on_is_not_calibrated() {
+        let (service, _tmp) = service_with_track(true);
+        step(&service, 1, 190);
+        let few = DecisionParams {
+            n_samples: 100,
+            ..DecisionParams::default()
+        };
+        let r = service.decide(1, &few).expect("decision");
+        let d = &r.decision;
+        assert_eq!(d.n_samples, 100);
+        let w = d.calibration.warning().expect("says why");
+        assert!(
+            matches!(d.calibration, CalibrationStatus::Absent { .. }) && w.contains("200") && w.contains("100"),
+            "{w}"
+        );
+        assert_eq!((d.p_success, d.rule), (d.p_success_raw, GraspRule::default()));
+        // the map's own count is calibrated
+        assert!(ask(&service).decision.calibration.is_calibrated());
     }
 
     #[test]

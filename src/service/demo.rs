@@ -266,10 +266,8 @@ fn run(state: Service, scene: DemoScene, stop: Arc<AtomicBool>) {
         if last_decision.elapsed() >= Duration::from_secs(1) {
             last_decision = Instant::now();
             for id in target_tracks(&state) {
-                let params = DecisionParams {
-                    n_samples: 300,
-                    ..DecisionParams::default()
-                };
+                // as many samples as the calibration map was fitted on (the API's default)
+                let params = DecisionParams::default();
                 if let Err(e) = state.decide(id, &params) {
                     tracing::debug!("demo decision for track {id}: {e}");
                 }
@@ -465,10 +463,7 @@ pub fn run_headless(args: &HeadlessArgs) -> anyhow::Result<Vec<LoopOutcome>> {
                 }
                 next_decision_s += 1.0;
                 for id in target_tracks(&state) {
-                    let params = DecisionParams {
-                        n_samples: 300,
-                        ..DecisionParams::default()
-                    };
+                    let params = DecisionParams::default();
                     let record = match state.decide(id, &params) {
                         Ok(r) => r,
                         Err(e) => {
