@@ -446,7 +446,8 @@ function calibrationLine(d) {
     return `calibrated · ${raw}${rule}${spread}`;
   }
   if (c.state === "stale") return `map fitted for other settings: raw rate and rule · ${raw}`;
-  return `no calibration map: raw rate · ${raw}`;
+  // no map, or an answer of fewer samples than the map was fitted on: the message says which
+  return `not calibrated: raw rate and rule · ${raw}`;
 }
 
 function mainReason(d) {
