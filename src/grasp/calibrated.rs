@@ -570,17 +570,19 @@ impl Calibration {
     /// reason, when the map was fitted on answers that drew more (see
     /// [`CalibrationMap::n_samples`]); else unchanged.
     pub fn for_samples(&self, n_samples: usize) -> Self {
-        match self {
-            Self::Fitted(m) if m.n_samples.is_some_and(|fitted| n_samples < fitted) => Self::Raw {
+        if let Self::Fitted(m) = self
+            && let Some(fitted) = m.n_samples
+            && n_samples < fitted
+        {
+            return Self::Raw {
                 reason: format!(
-                    "the calibration map was fitted on answers of {} pose samples and this one drew \
-                     {n_samples}: p_success is the raw rate and the rule the one without a map \
-                     (ask for n_samples >= {0} for a calibrated answer)",
-                    m.n_samples.unwrap_or_default()
+                    "the calibration map was fitted on answers of {fitted} pose samples and this one \
+                     drew {n_samples}: p_success is the raw rate and the rule the one without a map \
+                     (ask for n_samples >= {fitted} for a calibrated answer)"
                 ),
-            },
-            other => other.clone(),
+            };
         }
+        self.clone()
     }
 
     /// The time constant answers are smoothed with (the map's; 0 without a map).
