@@ -207,6 +207,31 @@ pub fn near_symmetric_turns(mesh: &Mesh, max_distance_m: f64) -> Vec<UnitQuatern
     turns
 }
 
+/// Meshes whose turns [`near_symmetric_turns_cached`] keeps; past it the cache starts again.
+const MAX_CACHED_TURNS: usize = 64;
+
+/// [`near_symmetric_turns`] kept per mesh content and distance: the search takes about a
+/// second per model, and a tracker adds a model again whenever its codebook is rebuilt (the
+/// service's coarse grid, then its fine one), on the thread that steps the tracks.
+pub fn near_symmetric_turns_cached(mesh: &Mesh, max_distance_m: f64) -> Vec<UnitQuaternion<f64>> {
+    use std::collections::HashMap;
+    use std::sync::{Mutex, OnceLock};
+    type Cache = Mutex<HashMap<(String, u64), Vec<UnitQuaternion<f64>>>>;
+    static CACHE: OnceLock<Cache> = OnceLock::new();
+    let key = (mesh.content_hash(), max_distance_m.to_bits());
+    let cache = CACHE.get_or_init(|| Mutex::new(HashMap::new()));
+    if let Some(t) = cache.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
+        return t.clone();
+    }
+    let turns = near_symmetric_turns(mesh, max_distance_m);
+    let mut map = cache.lock().unwrap_or_else(|e| e.into_inner());
+    if map.len() >= MAX_CACHED_TURNS {
+        map.clear();
+    }
+    map.insert(key, turns.clone());
+    turns
+}
+
 /// Axis step of [`best_half_turn`]'s coarse search (its refinement goes to a tenth of it).
 const HALF_TURN_SEARCH_STEP_RAD: f64 = 10.0 * std::f64::consts::PI / 180.0;
 
@@ -500,6 +525,20 @@ mod tests {
         let m = surface_mismatch(&mesh, &turns[0]).expect("mesh");
         let x180 = surface_mismatch(&mesh, &rot(Vector3::x_axis(), PI)).expect("mesh");
         assert!(m.mean_distance_m < 0.5 * x180.mean_distance_m, "{m:?} against {x180:?}");
+    }
+
+    #[test]
+    fn cached_turns_are_the_search_s() {
+        let mesh = crate::mesh::builtin("box").expect("builtin");
+        let searched = near_symmetric_turns(&mesh, 0.01);
+        assert!(!searched.is_empty(), "the box has near-symmetric turns");
+        assert_eq!(near_symmetric_turns_cached(&mesh, 0.01), searched);
+        assert_eq!(near_symmetric_turns_cached(&mesh, 0.01), searched, "from the cache");
+        // another distance is another entry
+        assert_eq!(
+            near_symmetric_turns_cached(&mesh, 1e-6),
+            near_symmetric_turns(&mesh, 1e-6)
+        );
     }
 
     #[test]

@@ -536,7 +536,7 @@ impl Tracker {
             return Vec::new();
         }
         let max_m = self.config.turn_max_distance_rel * codebook.box_m();
-        crate::symmetry::near_symmetric_turns(mesh, max_m)
+        crate::symmetry::near_symmetric_turns_cached(mesh, max_m)
             .iter()
             .map(|q| q.to_rotation_matrix().into_inner())
             .collect()
