@@ -171,8 +171,9 @@ fn mug_truth_places(out: &SequenceOutcome) -> Vec<TruthPlace> {
 /// say. Over the eight seeds' 80 frames the truth lies in the 90 % region in 80 % to 97 % of
 /// them (issue 19's band; a calibrated region holds 72 of 80 on average, fewer than 64 in
 /// 0.2 % of draws of independent frames, 70 or fewer in 28 %). Measured with the default
-/// settings: 72 of 80, median region 2.4 cm^3 (70 of 80 at 2.6 cm^3 with turn mixing, missing
-/// other frames). A quarter of the spread floor (fitted on generated sequences, whose
+/// settings: 72 of 80, median region 2.4 cm^3, the same since turn mixing on the near-exact
+/// turns is on by default (mixing every turn under 7.5 % of the diameter held 70 of 80 at
+/// 2.6 cm^3, missing other frames). A quarter of the spread floor (fitted on generated sequences, whose
 /// errors are half the real clip's 0.5-1.3 cm) held 50 of 80, missing the truth in most frames
 /// after the fourth.
 #[test]
