@@ -327,6 +327,8 @@ struct Model {
     /// The near-symmetric turns (object frame) that keep a share of the mass
     /// ([`TrackerConfig::turn_share`]); empty when that is off.
     turns: Vec<nalgebra::Matrix3<f64>>,
+    /// Every bin's partner under each turn on this model's grid (`sparse::turn_partners`).
+    turn_partners: Vec<u32>,
 }
 
 /// State of one track.
@@ -518,7 +520,9 @@ impl Tracker {
             } else {
                 self.turns_of(&mesh, &codebook)
             };
+            let turn_partners = crate::tracker::sparse::turn_partners(&tables, &turns);
             let m = &mut self.models[mi];
+            m.turn_partners = turn_partners;
             m.turns = turns;
             m.mesh = mesh;
             m.codebook = codebook;
@@ -528,6 +532,7 @@ impl Tracker {
             return;
         }
         let turns = self.turns_of(&mesh, &codebook);
+        let turn_partners = crate::tracker::sparse::turn_partners(&tables, &turns);
         self.models.push(Model {
             name: name.to_string(),
             mesh,
@@ -535,6 +540,7 @@ impl Tracker {
             tables,
             lattice,
             turns,
+            turn_partners,
         });
     }
 
@@ -739,8 +745,14 @@ impl Tracker {
                 });
                 let kernel = near_kernel.as_deref().unwrap_or(&kernel);
                 crate::tracker::sparse::blur(&mut s.rot, tables, kernel, &mut self.blur_work);
-                let turns = &self.models[s.model].turns;
-                crate::tracker::sparse::mix_turns(&mut s.rot, tables, turns, self.config.turn_share as f32);
+                let m = &self.models[s.model];
+                crate::tracker::sparse::mix_turns(
+                    &mut s.rot,
+                    tables,
+                    &m.turn_partners,
+                    m.turns.len(),
+                    self.config.turn_share as f32,
+                );
                 // the halo's bins that stay near the floor go back to it: only the rest is
                 // matched at this step
                 if !matching.dense {
