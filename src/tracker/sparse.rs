@@ -598,15 +598,6 @@ enum Axis {
     Elevation,
 }
 
-/// Moves `share` of each column's mass above its floor at every active bin onto the bins of
-/// that bin's `nt` turns (object frame: bin `b`'s rotation times the turn, read from
-/// `partners_of`, [`turn_partners`]), in equal parts; the partner bins join the active set.
-/// Mass is kept, so nothing is renormalised.
-///
-/// Gathered per destination bin, in parallel: each bin adds what its sources give it in the
-/// order the sources come (ascending, a source's own mass before its turns' shares), so the
-/// sums are those of scattering source by source, to the bit (`mix_turns_scatter` in the
-/// tests), at a fraction of its time (no allocation per bin, every core).
 /// Every bin's partner under each turn (`turn_partners[b * turns.len() + j]`: bin `b`'s
 /// rotation times turn `j`, binned), for [`mix_turns`]: built once per grid and object (a
 /// fraction of a second), it spares each step the binning of every active bin's turns.
@@ -625,6 +616,15 @@ pub fn turn_partners(tables: &GridTables, turns: &[Matrix3<f64>]) -> Vec<u32> {
         .collect()
 }
 
+/// Moves `share` of each column's mass above its floor at every active bin onto the bins of
+/// that bin's `nt` turns (object frame: bin `b`'s rotation times the turn, read from
+/// `partners_of`, [`turn_partners`]), in equal parts; the partner bins join the active set.
+/// Mass is kept, so nothing is renormalised.
+///
+/// Gathered per destination bin, in parallel: each bin adds what its sources give it in the
+/// order the sources come (ascending, a source's own mass before its turns' shares), so the
+/// sums are those of scattering source by source, to the bit (`mix_turns_scatter` in the
+/// tests), at a fraction of its time (no allocation per bin, every core).
 pub fn mix_turns(state: &mut RotationState, tables: &GridTables, partners_of: &[u32], nt: usize, share: f32) {
     let nc = state.n_cols();
     if nc == 0 || state.active.is_empty() || nt == 0 || share <= 0.0 {
