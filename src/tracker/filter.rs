@@ -504,6 +504,10 @@ impl Tracker {
                 (t, l)
             }
         };
+        // the turns depend on the mesh alone (searched once per mesh for the process), their
+        // partner table on the grid too
+        let turns = self.turns_of(&mesh, &codebook);
+        let turn_partners = crate::tracker::sparse::turn_partners(&tables, &turns);
         if let Some(mi) = self.models.iter().position(|m| m.name == name) {
             // a better codebook for a known model: its tracks move to the new grid through
             // their compact snapshots (see `snapshot`), keeping particles and marginals
@@ -512,15 +516,6 @@ impl Tracker {
             } else {
                 Vec::new()
             };
-            // the turns depend on the mesh alone: a finer codebook of the same mesh keeps them
-            // (the search costs 0.2-0.6 s per object)
-            let same_mesh = self.models[mi].mesh == mesh && self.models[mi].codebook.box_m() == codebook.box_m();
-            let turns = if same_mesh {
-                std::mem::take(&mut self.models[mi].turns)
-            } else {
-                self.turns_of(&mesh, &codebook)
-            };
-            let turn_partners = crate::tracker::sparse::turn_partners(&tables, &turns);
             let m = &mut self.models[mi];
             m.turn_partners = turn_partners;
             m.turns = turns;
@@ -531,8 +526,6 @@ impl Tracker {
             self.carry_tracks_to_new_grid(carried);
             return;
         }
-        let turns = self.turns_of(&mesh, &codebook);
-        let turn_partners = crate::tracker::sparse::turn_partners(&tables, &turns);
         self.models.push(Model {
             name: name.to_string(),
             mesh,
