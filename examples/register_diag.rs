@@ -12,7 +12,8 @@
 //! squared Mahalanobis distance of what is left under the claimed information (a calibrated
 //! 3-D Gaussian gives 2.37; the information scale that would calibrate it is 2.37 / median).
 //! `ROT_ERROR_DEG` also turns the hypothesis by that much about a random axis (a track's top
-//! mode is a few degrees off). Nothing here reaches the filter.
+//! mode is a few degrees off); `HALF_TURN_AXIS=x,y,z` instead turns it half a turn about that
+//! axis of the object (a near-symmetry's confusion). Nothing here reaches the filter.
 
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use pregrasp::dataset::{Sequence, find_sequences};
@@ -45,6 +46,17 @@ fn main() -> anyhow::Result<()> {
     let rot_error = arg(4, 0.0)?.to_radians();
     let min_range_m = arg(5, 0.0)?;
     let config = RegistrationConfig::default();
+    // HALF_TURN_AXIS=x,y,z: the hypothesis is the truth turned by half a turn about that object
+    // axis (a near-symmetry's confusion) instead of `ROT_ERROR_DEG` about a random one
+    let half_turn_axis: Option<Vector3<f64>> = match std::env::var("HALF_TURN_AXIS") {
+        Ok(s) => {
+            let v: Vec<f64> = s.split(',').map(str::parse).collect::<Result<_, _>>()?;
+            anyhow::ensure!(v.len() == 3, "HALF_TURN_AXIS takes x,y,z");
+            Some(Vector3::new(v[0], v[1], v[2]).normalize())
+        }
+        Err(_) => None,
+    };
+    let mut left_sum = Vector3::zeros();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
     let normal = Normal::new(0.0, 1.0)?;
     let (mut all_before, mut all_after, mut all_d2, mut all_view_d2) = (vec![], vec![], vec![], vec![]);
@@ -66,7 +78,10 @@ fn main() -> anyhow::Result<()> {
             // one error per frame, in the object's frame
             let err_obj = Vector3::from_fn(|_, _| normal.sample(&mut rng) * error_m);
             let axis = Vector3::from_fn(|_, _| normal.sample(&mut rng)).normalize();
-            let turn = UnitQuaternion::from_scaled_axis(axis * rot_error);
+            let turn = match &half_turn_axis {
+                Some(a) => UnitQuaternion::from_scaled_axis(a * std::f64::consts::PI),
+                None => UnitQuaternion::from_scaled_axis(axis * rot_error),
+            };
             let (mut info_obj, mut b_obj) = (Matrix3::zeros(), Vector3::zeros());
             let mut views = 0;
             for (camera, stream) in &seq.cameras {
@@ -139,6 +154,7 @@ fn main() -> anyhow::Result<()> {
                 }
             }
             let left = err_obj + d;
+            left_sum += left;
             before.push(err_obj.norm());
             after.push(left.norm());
             d2s.push(left.dot(&(info_obj * left)));
@@ -171,6 +187,12 @@ fn main() -> anyhow::Result<()> {
             median(v.iter().map(|p| p.3).collect())
         );
     }
+    println!(
+        "mean error left in the object's frame: {:+.4} {:+.4} {:+.4} m",
+        left_sum.x / all_after.len().max(1) as f64,
+        left_sum.y / all_after.len().max(1) as f64,
+        left_sum.z / all_after.len().max(1) as f64
+    );
     let within90 = all_d2.iter().filter(|d| **d <= 6.25).count() as f64 / all_d2.len().max(1) as f64;
     println!(
         "all: error {:.4} -> {:.4} m (median of {} frames; 90th percentile after {:.4}), Mahalanobis^2 median {:.2} (one view {:.2}), within the 90 % region {:.2}; {:.1} ms a view (median)",

@@ -7,21 +7,24 @@
 //! bin, the rank of the true bin, and the view's evidence strength. Then it pulls every view's
 //! log-likelihood into the robot camera's frame with the tracker's own bin maps, sums them as
 //! the filter does (Eq. 6), and reports the evidence for the truth: the log of the posterior
-//! mass of the true bin's 3 x 3 x 3 neighbourhood over that of a uniform prior (nats).
+//! mass of the true bin's 3 x 3 x 3 neighbourhood over that of a uniform prior (nats), and per
+//! view that evidence against the same for the truth's best near-symmetric turn (the tracker's
+//! turns; `vs turn`, positive where the view prefers the truth).
 //!
-//! - `--offset-cm X`: crops X cm off the truth (along the world's (1, 1, 1)), as a particle a
-//!   little off would see the object.
+//! - `--offset-cm X`: crops X cm off the truth (along the world's (1, 1, 1), or `--offset-dir
+//!   x,y,z`), as a particle a little off would see the object.
 //! - `--dump FILE`: per view one JSON line (`FILE.jsonl`) and the similarities at the true
 //!   position to every bin (`FILE.f32`), for calibrating the likelihood offline.
 //!
-//! cargo run --release --example view_diag -- DATA_DIR [--grid 10] [--stride 5] [--cache DIR] [--models DIR] [--offset-cm X] [--dump FILE]
+//! cargo run --release --example view_diag -- DATA_DIR [--grid 10] [--stride 5] [--cache DIR] [--models DIR] [--offset-cm X] [--offset-dir x,y,z] [--dump FILE]
 
-use nalgebra::Vector3;
+use nalgebra::{UnitQuaternion, Vector3};
 use pregrasp::dataset::{Sequence, find_sequences};
 use pregrasp::eval::metrics::Symmetries;
 use pregrasp::geometry::{RotationGrid, ray_rotation};
 use pregrasp::mesh::Mesh;
 use pregrasp::render::Renderer;
+use pregrasp::symmetry::near_symmetric_turns_cached;
 use pregrasp::tracker::bins::GridTables;
 use pregrasp::tracker::observation::{ViewImage, evidence_strength, observe_view, view_loglik};
 use pregrasp::tracker::{Codebook, CodebookConfig, TrackerConfig};
@@ -39,7 +42,13 @@ fn main() -> anyhow::Result<()> {
     };
     let grid_deg: u32 = opt("--grid").map_or(Ok(10), |s| s.parse())?;
     let offset_cm: f64 = opt("--offset-cm").map_or(Ok(0.0), |s| s.parse())?;
-    let off_world = Vector3::new(1.0, 1.0, 1.0).normalize() * offset_cm * 0.01;
+    let off_dir: Vec<f64> = opt("--offset-dir")
+        .unwrap_or_else(|| "1,1,1".into())
+        .split(',')
+        .map(str::parse)
+        .collect::<Result<_, _>>()?;
+    anyhow::ensure!(off_dir.len() == 3, "--offset-dir takes x,y,z");
+    let off_world = Vector3::new(off_dir[0], off_dir[1], off_dir[2]).normalize() * offset_cm * 0.01;
     let stride: usize = opt("--stride").map_or(Ok(5), |s| s.parse())?;
     let cache = opt("--cache").map(PathBuf::from);
     let models = opt("--models").map(PathBuf::from);
@@ -53,7 +62,9 @@ fn main() -> anyhow::Result<()> {
     let grid = RotationGrid::new(grid_deg)?;
     let tables = GridTables::new(grid);
     let renderer = Renderer::new()?;
-    let mut books: BTreeMap<String, (Codebook, Symmetries)> = BTreeMap::new();
+    let mut books: BTreeMap<String, (Codebook, Symmetries, Vec<UnitQuaternion<f64>>)> = BTreeMap::new();
+    // per (object, camera): [sum of ln(L(truth) / L(best turn of the truth)), frames, frames the turn wins]
+    let mut swaps: BTreeMap<(String, String), [f64; 3]> = BTreeMap::new();
     // per (object, camera): [sum geodesic, sum symmetric, count, sum strength, sum rank]
     let mut totals: BTreeMap<(String, String), [f64; 5]> = BTreeMap::new();
     // per object: (sum of the fused evidence for the truth, frames)
@@ -76,9 +87,13 @@ fn main() -> anyhow::Result<()> {
                 None => seq.load_mesh(&target)?,
             };
             let cb = Codebook::load_or_build(&renderer, &mesh, grid, &CodebookConfig::default(), cache.as_deref())?;
-            books.insert(target.clone(), (cb, Symmetries::for_object(&target, &mesh)));
+            let turns = near_symmetric_turns_cached(
+                &mesh,
+                TrackerConfig::default().turn_max_distance_rel * mesh.diameter_m(),
+            );
+            books.insert(target.clone(), (cb, Symmetries::for_object(&target, &mesh), turns));
         }
-        let (cb, sym) = &books[&target];
+        let (cb, sym, turns) = &books[&target];
         println!("== {} ({target})", seq_dir.display());
         for f in seq.frame_ids().into_iter().step_by(stride.max(1)) {
             let mut line = format!("frame {f:3}:");
@@ -201,6 +216,25 @@ fn main() -> anyhow::Result<()> {
                     let map = tables.pull_map(&q);
                     let mapped: Vec<f32> = map.iter().map(|&m| ll[m as usize]).collect();
                     line += &format!("  [{c}->ref gain {:.1}]", gain(&grid, &tables, &mapped, true_ref));
+                    // the truth against its near-symmetric turns, in this view's own evidence
+                    let turned: Vec<usize> = turns
+                        .iter()
+                        .map(|q| {
+                            grid.flat_of(&(ray_rotation(&t_ref).inverse() * rt.reference_from_object.rotation * q))
+                        })
+                        .collect();
+                    if !turned.is_empty() {
+                        let g_true = gain(&grid, &tables, &mapped, true_ref);
+                        let g_turn = turned
+                            .iter()
+                            .map(|&b| gain(&grid, &tables, &mapped, b))
+                            .fold(f64::NEG_INFINITY, f64::max);
+                        line += &format!("(vs turn {:+.1})", g_true - g_turn);
+                        let e = swaps.entry((target.clone(), c.clone())).or_default();
+                        e[0] += g_true - g_turn;
+                        e[1] += 1.0;
+                        e[2] += f64::from(u8::from(g_turn > g_true));
+                    }
                     for (d, v) in fused.iter_mut().zip(&mapped) {
                         *d += v;
                     }
@@ -223,6 +257,17 @@ fn main() -> anyhow::Result<()> {
             v[1] / v[2],
             v[3] / v[2],
             v[4] / v[2]
+        );
+    }
+    println!(
+        "\nper object and camera: the truth against its best near-symmetric turn (mean nats, share of frames the turn wins)"
+    );
+    for ((o, c), v) in &swaps {
+        println!(
+            "{o:24} {c:6} n {:3} {:+6.2} nats, turn wins {:.2}",
+            v[1],
+            v[0] / v[1],
+            v[2] / v[1]
         );
     }
     println!("\nper object: mean fused evidence for the truth (nats over a uniform prior)");

@@ -447,6 +447,7 @@ mod tests {
             truth_place: None,
             estimate_xyzw: None,
             error_rotvec_object_rad: None,
+            error_translation_object_m: None,
         };
         let trace = ObjectTrace {
             sequence: "s".into(),

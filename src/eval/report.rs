@@ -53,6 +53,10 @@ pub struct FrameErrors {
     /// which turn the estimate is off by (a near-symmetry shows as a half turn about one axis).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub error_rotvec_object_rad: Option<[f64; 3]>,
+    /// The translation error in the true object frame (`truth^-1 * (estimate - truth)`,
+    /// metres): which way the estimate sits off the object (along its up axis, its long axis).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error_translation_object_m: Option<[f64; 3]>,
 }
 
 /// The truth's place in the tracked distribution at one frame (`eval::trust`): the
@@ -739,6 +743,7 @@ mod tests {
             truth_place: None,
             estimate_xyzw: None,
             error_rotvec_object_rad: None,
+            error_translation_object_m: None,
         }
     }
 

@@ -450,6 +450,9 @@ pub fn evaluate_sequence(
                             [q.i, q.j, q.k, q.w]
                         }),
                         error_rotvec_object_rad: Some((t.rotation.inverse() * e.rotation).scaled_axis().into()),
+                        error_translation_object_m: Some(
+                            (t.rotation.inverse() * (e.translation.vector - t.translation.vector)).into(),
+                        ),
                     }
                 });
                 if let (Some(dc), Some(i), true) = (&cfg.decide, assoc[k], table_row(object)) {
