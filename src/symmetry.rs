@@ -277,8 +277,8 @@ pub fn best_half_turn_of(mesh: &Mesh, centre: TurnCentre) -> Option<(UnitQuatern
 
 /// The half turn, about any axis through `centre`, that moves the surface least, and that
 /// mean distance (m): a banana's ends swap under a half turn about an axis 22 degrees off
-/// its x axis, which the object axes miss. Axes over a hemisphere (a half turn about `-a` is the one about
-/// `a`) every 10 degrees on an eighth of the samples; the best three, 30 degrees apart,
+/// its x axis, which the object axes miss. Axes over a hemisphere (a half turn about `-a` is
+/// the one about `a`) every 10 degrees on an eighth of the samples; the best three, 30 degrees apart,
 /// refined by 3 degrees on a quarter of them (two minima may be closer than the eighth's
 /// noise: the power drill's are 0.3 mm apart); the best of those by 1 degree on all of them.
 /// About a third of the cost of all samples everywhere, spread over the cores.
