@@ -215,7 +215,8 @@ fn main() -> anyhow::Result<()> {
                     let q = ray_rotation(t_v).inverse() * view_from_ref.rotation * ray_rotation(&t_ref);
                     let map = tables.pull_map(&q);
                     let mapped: Vec<f32> = map.iter().map(|&m| ll[m as usize]).collect();
-                    line += &format!("  [{c}->ref gain {:.1}]", gain(&grid, &tables, &mapped, true_ref));
+                    let g_true = gain(&grid, &tables, &mapped, true_ref);
+                    line += &format!("  [{c}->ref gain {g_true:.1}]");
                     // the truth against its near-symmetric turns, in this view's own evidence
                     let turned: Vec<usize> = turns
                         .iter()
@@ -224,7 +225,6 @@ fn main() -> anyhow::Result<()> {
                         })
                         .collect();
                     if !turned.is_empty() {
-                        let g_true = gain(&grid, &tables, &mapped, true_ref);
                         let g_turn = turned
                             .iter()
                             .map(|&b| gain(&grid, &tables, &mapped, b))

@@ -254,25 +254,17 @@ pub fn near_symmetric_turns_cached(mesh: &Mesh, max_distance_m: f64) -> Vec<Unit
 /// Axis step of [`best_half_turn`]'s coarse search (its refinement goes to a tenth of it).
 const HALF_TURN_SEARCH_STEP_RAD: f64 = 10.0 * std::f64::consts::PI / 180.0;
 
-/// Where the axes of [`best_half_turn_of`] pass through.
+/// Where the axes of [`best_half_turn`] pass through.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum TurnCentre {
+enum TurnCentre {
     /// The object frame's origin (the bounding box's centre for the YCB meshes).
+    #[cfg_attr(not(test), allow(dead_code))]
     Origin,
     /// The surface's centroid, which any symmetry maps onto itself: the turn a view
-    /// confuses with the truth (what [`near_symmetric_turns`] searches).
+    /// confuses with the truth (what [`near_symmetric_turns`] searches; the banana's through
+    /// its centroid lies 23 degrees from the best one through its origin, `docs/decisions.md`,
+    /// "The banana's end swap passes through its centroid").
     Centroid,
-}
-
-/// The half turn about any axis through `centre` that moves `mesh`'s surface least, with
-/// that mean distance (m), as the rotation about the origin (a histogram's partner bin; the
-/// shift a turn through the centroid adds, about a centimetre for the banana, is within a
-/// track's spread); `None` for a mesh parry3d rejects. The banana's end swap through its
-/// centroid lies 23 degrees from the best one through its origin, and the tracker's swapped
-/// estimates follow the first (`docs/decisions.md`, "The banana's end swap passes through its
-/// centroid").
-pub fn best_half_turn_of(mesh: &Mesh, centre: TurnCentre) -> Option<(UnitQuaternion<f64>, f64)> {
-    Some(best_half_turn(&ColoredSurface::new(mesh, SURFACE_SAMPLES)?, centre))
 }
 
 /// The half turn, about any axis through `centre`, that moves the surface least, and that
@@ -581,8 +573,9 @@ mod tests {
         // worse and lies about 23 degrees from the one through the centroid: mass mixed onto it
         // lands that far from the pose the views confuse
         let mesh = Mesh::load(&shared_dir().join("ycb/011_banana.ply")).expect("banana in ../shared/ycb");
-        let (origin, d_origin) = best_half_turn_of(&mesh, TurnCentre::Origin).expect("mesh");
-        let (centroid, d_centroid) = best_half_turn_of(&mesh, TurnCentre::Centroid).expect("mesh");
+        let surface = ColoredSurface::new(&mesh, SURFACE_SAMPLES).expect("mesh");
+        let (origin, d_origin) = best_half_turn(&surface, TurnCentre::Origin);
+        let (centroid, d_centroid) = best_half_turn(&surface, TurnCentre::Centroid);
         assert!(d_centroid < d_origin, "{d_centroid} against {d_origin}");
         let between = origin.angle_to(&centroid).to_degrees();
         assert!((15.0..35.0).contains(&between), "{between} degrees apart");
