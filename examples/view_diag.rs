@@ -12,11 +12,12 @@
 //! turns; `vs turn`, positive where the view prefers the truth).
 //!
 //! - `--offset-cm X`: crops X cm off the truth (along the world's (1, 1, 1), or `--offset-dir
-//!   x,y,z`), as a particle a little off would see the object.
+//!   x,y,z`; `--offset-in object` takes that direction in the object's frame), as a particle a
+//!   little off would see the object.
 //! - `--dump FILE`: per view one JSON line (`FILE.jsonl`) and the similarities at the true
 //!   position to every bin (`FILE.f32`), for calibrating the likelihood offline.
 //!
-//! cargo run --release --example view_diag -- DATA_DIR [--grid 10] [--stride 5] [--cache DIR] [--models DIR] [--offset-cm X] [--offset-dir x,y,z] [--dump FILE]
+//! cargo run --release --example view_diag -- DATA_DIR [--grid 10] [--stride 5] [--cache DIR] [--models DIR] [--offset-cm X] [--offset-dir x,y,z] [--offset-in object] [--dump FILE]
 
 use nalgebra::{UnitQuaternion, Vector3};
 use pregrasp::dataset::{Sequence, find_sequences};
@@ -49,6 +50,8 @@ fn main() -> anyhow::Result<()> {
         .collect::<Result<_, _>>()?;
     anyhow::ensure!(off_dir.len() == 3, "--offset-dir takes x,y,z");
     let off_world = Vector3::new(off_dir[0], off_dir[1], off_dir[2]).normalize() * offset_cm * 0.01;
+    // `--offset-in object`: the offset's direction is in the object's frame, not the world's
+    let off_in_object = opt("--offset-in").as_deref() == Some("object");
     let stride: usize = opt("--stride").map_or(Ok(5), |s| s.parse())?;
     let cache = opt("--cache").map(PathBuf::from);
     let models = opt("--models").map(PathBuf::from);
@@ -87,10 +90,19 @@ fn main() -> anyhow::Result<()> {
                 None => seq.load_mesh(&target)?,
             };
             let cb = Codebook::load_or_build(&renderer, &mesh, grid, &CodebookConfig::default(), cache.as_deref())?;
-            let turns = near_symmetric_turns_cached(
+            let mut turns = near_symmetric_turns_cached(
                 &mesh,
                 TrackerConfig::default().turn_max_distance_rel * mesh.diameter_m(),
             );
+            // EXTRA_TURNS="x,y,z,deg;...": compare the truth against these turns of it as well
+            if let Ok(s) = std::env::var("EXTRA_TURNS") {
+                for t in s.split(';').filter(|t| !t.is_empty()) {
+                    let v: Vec<f64> = t.split(',').map(str::parse).collect::<Result<_, _>>()?;
+                    anyhow::ensure!(v.len() == 4, "EXTRA_TURNS takes x,y,z,deg;...");
+                    let axis = nalgebra::Unit::new_normalize(Vector3::new(v[0], v[1], v[2]));
+                    turns.push(UnitQuaternion::from_axis_angle(&axis, v[3].to_radians()));
+                }
+            }
             books.insert(target.clone(), (cb, Symmetries::for_object(&target, &mesh), turns));
         }
         let (cb, sym, turns) = &books[&target];
@@ -122,7 +134,11 @@ fn main() -> anyhow::Result<()> {
                     depth: &depth,
                     color: color.as_ref(),
                 };
-                let off_cam = meta.camera_from_world.map_or(off_world, |c| c.rotation * off_world);
+                let off_cam = if off_in_object {
+                    gt.camera_from_object.rotation * off_world
+                } else {
+                    meta.camera_from_world.map_or(off_world, |c| c.rotation * off_world)
+                };
                 let t = gt.camera_from_object.translation.vector + off_cam;
                 let mut positions = vec![t];
                 for dx in -1..=1 {
@@ -207,7 +223,12 @@ fn main() -> anyhow::Result<()> {
             if let (Some(rcfw), Some(rt)) = (robot_cfw, robot_truth)
                 && !lls.is_empty()
             {
-                let t_ref = rt.reference_from_object.translation.vector + rcfw.rotation * off_world;
+                let off_ref = if off_in_object {
+                    rt.reference_from_object.rotation * off_world
+                } else {
+                    rcfw.rotation * off_world
+                };
+                let t_ref = rt.reference_from_object.translation.vector + off_ref;
                 let true_ref = grid.flat_of(&(ray_rotation(&t_ref).inverse() * rt.reference_from_object.rotation));
                 let mut fused = vec![0f32; grid.len()];
                 for (c, cfw, t_v, ll) in &lls {
