@@ -184,6 +184,54 @@ impl ColoredSurface {
         self.moved_mismatch_on(&moved, stride)
     }
 
+    /// The half turn about `axis` through the point that moves the best
+    /// [`CONFUSABLE_KEEP_SHARE`] of every `stride`-th sample least: from the centroid, three
+    /// steps that move the centre by half the kept samples' mean residual across the axis (a
+    /// half turn moves its centre's offset twice).
+    fn centred_half_turn(&self, axis: &Unit<Vector3<f64>>, stride: usize) -> CentredTurn {
+        let rotation = UnitQuaternion::from_axis_angle(axis, std::f64::consts::PI);
+        let mut centre = self.centroid_m.coords;
+        let mut trimmed = f64::INFINITY;
+        for _ in 0..3 {
+            let moved = Isometry3::from_parts(Translation3::from(centre - rotation * centre), rotation);
+            let mut res: Vec<(f64, Vector3<f64>)> = self
+                .points_m
+                .iter()
+                .step_by(stride.max(1))
+                .map(|p| {
+                    let m = moved * p;
+                    let q = self.nearest_point(&m);
+                    ((q - m).norm(), q - m)
+                })
+                .collect();
+            res.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let keep = ((res.len() as f64 * CONFUSABLE_KEEP_SHARE).ceil() as usize).clamp(1, res.len().max(1));
+            let kept = &res[..keep.min(res.len())];
+            if kept.is_empty() {
+                break;
+            }
+            trimmed = kept.iter().map(|r| r.0).sum::<f64>() / kept.len() as f64;
+            let mean: Vector3<f64> = kept.iter().map(|r| r.1).sum::<Vector3<f64>>() / kept.len() as f64;
+            let across = mean - axis.as_ref() * axis.dot(&mean);
+            centre += 0.5 * across;
+        }
+        // the centre's component along the axis is free: keep the one nearest the origin
+        let centre = centre - axis.as_ref() * axis.dot(&centre);
+        CentredTurn {
+            rotation,
+            centre_m: centre,
+            trimmed_distance_m: trimmed,
+        }
+    }
+
+    /// The surface's nearest point to `p`.
+    fn nearest_point(&self, p: &Point3<f64>) -> Point3<f64> {
+        use parry3d::query::PointQuery;
+        let v = parry3d::math::Vector::new(p.x as f32, p.y as f32, p.z as f32);
+        let proj = self.surface.project_local_point(v, false);
+        Point3::new(proj.point.x as f64, proj.point.y as f64, proj.point.z as f64)
+    }
+
     fn moved_mismatch_on(&self, moved: &Isometry3<f64>, stride: usize) -> SurfaceMismatch {
         let (d1, c1) = self.one_way(moved, stride);
         let (d2, c2) = self.one_way(&moved.inverse(), stride);
@@ -243,6 +291,26 @@ pub fn near_symmetric_turns_cached(mesh: &Mesh, max_distance_m: f64) -> Vec<Unit
         return t.clone();
     }
     let turns = near_symmetric_turns(mesh, max_distance_m);
+    let mut map = cache.lock().unwrap_or_else(|e| e.into_inner());
+    if map.len() >= MAX_CACHED_TURNS {
+        map.clear();
+    }
+    map.insert(key, turns.clone());
+    turns
+}
+
+/// [`confusable_turns`] kept per mesh content and limits, as [`near_symmetric_turns_cached`].
+pub fn confusable_turns_cached(mesh: &Mesh, max_trimmed_m: f64, min_shift_m: f64) -> Vec<CentredTurn> {
+    use std::collections::HashMap;
+    use std::sync::{Mutex, OnceLock};
+    type Cache = Mutex<HashMap<(String, u64, u64), Vec<CentredTurn>>>;
+    static CACHE: OnceLock<Cache> = OnceLock::new();
+    let key = (mesh.content_hash(), max_trimmed_m.to_bits(), min_shift_m.to_bits());
+    let cache = CACHE.get_or_init(|| Mutex::new(HashMap::new()));
+    if let Some(t) = cache.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
+        return t.clone();
+    }
+    let turns = confusable_turns(mesh, max_trimmed_m, min_shift_m);
     let mut map = cache.lock().unwrap_or_else(|e| e.into_inner());
     if map.len() >= MAX_CACHED_TURNS {
         map.clear();
@@ -325,6 +393,90 @@ fn best_half_turn(surface: &ColoredSurface, centre: TurnCentre) -> (UnitQuaterni
     let best = least(score(refined, 4));
     let (el, az, d) = least(score(around(best, 0.1 * step), 1));
     (half_turn(axis(el, az)), d)
+}
+
+/// A half turn about an axis that need not pass through the object's origin: the pose
+/// `(R, t)` and `(R * rotation, t + R * (centre - rotation * centre))` show the same surface
+/// wherever the turn is a near-symmetry.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CentredTurn {
+    /// The turn's rotation (object frame).
+    pub rotation: UnitQuaternion<f64>,
+    /// A point on the turn's axis (object frame, m).
+    pub centre_m: Vector3<f64>,
+    /// The trimmed mean distance (m) the turn moves the surface by ([`CONFUSABLE_KEEP_SHARE`]).
+    pub trimmed_distance_m: f64,
+}
+
+impl CentredTurn {
+    /// The shift of the object's origin that keeps the surface in place when the object,
+    /// at rotation `rotation_m` (its frame to the one the shift is wanted in), is turned.
+    pub fn origin_shift(&self, rotation: &UnitQuaternion<f64>) -> Vector3<f64> {
+        rotation * (self.centre_m - self.rotation * self.centre_m)
+    }
+}
+
+/// Share of the surface samples (the nearest to the surface after the turn) that
+/// [`confusable_turns`] scores: a mug's handle, a drill's trigger are about a tenth of the
+/// surface, and a view that does not see them confuses the turn that moves only them.
+pub const CONFUSABLE_KEEP_SHARE: f64 = 0.8;
+
+/// Half turns about axes through any point, under which all but the worst fifth of the
+/// surface moves by less than `max_trimmed_m` on average, and whose axis passes at least
+/// `min_shift_m / 2` from the origin (a turn through the origin the histograms mix in place):
+/// the joint poses, rotation and position, a view confuses with the truth when a small part
+/// of the object is hidden or too small to see (the mug's body turned about its own axis, the
+/// handle on the other side). At most three, 30 degrees apart, best first.
+pub fn confusable_turns(mesh: &Mesh, max_trimmed_m: f64, min_shift_m: f64) -> Vec<CentredTurn> {
+    use rayon::prelude::*;
+    let Some(surface) = ColoredSurface::new(mesh, SURFACE_SAMPLES) else {
+        return Vec::new();
+    };
+    let axis = |el: f64, az: f64| Vector3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+    let step = HALF_TURN_SEARCH_STEP_RAD;
+    let coarse: Vec<(f64, f64)> = (0..=9)
+        .flat_map(|i| {
+            let n_az = if i == 9 { 1 } else { 36 };
+            (0..n_az).map(move |j| (i as f64 * step, j as f64 * step))
+        })
+        .collect();
+    let fit = |a: Vector3<f64>, stride: usize| surface.centred_half_turn(&Unit::new_normalize(a), stride);
+    let mut scored: Vec<(Vector3<f64>, CentredTurn)> = coarse
+        .into_par_iter()
+        .map(|(el, az)| (axis(el, az), fit(axis(el, az), 8)))
+        .collect();
+    scored.sort_by(|a, b| a.1.trimmed_distance_m.total_cmp(&b.1.trimmed_distance_m));
+    let mut seeds: Vec<Vector3<f64>> = Vec::new();
+    for (a, _) in &scored {
+        if seeds.len() < 3 && seeds.iter().all(|s| s.dot(a).abs() < (3.0 * step).cos()) {
+            seeds.push(*a);
+        }
+    }
+    // each seed refined by 2 degrees within its 10-degree cell, on every second sample
+    let refined: Vec<CentredTurn> = seeds
+        .into_par_iter()
+        .map(|a0| {
+            let u = a0
+                .cross(&Vector3::x())
+                .try_normalize(1e-6)
+                .unwrap_or_else(|| a0.cross(&Vector3::y()).normalize());
+            let v = a0.cross(&u);
+            let fine = 0.2 * step;
+            (-2..=2)
+                .flat_map(|i| (-2..=2).map(move |j| (i, j)))
+                .map(|(i, j)| fit((a0 + u * (i as f64 * fine) + v * (j as f64 * fine)).normalize(), 2))
+                .min_by(|a, b| a.trimmed_distance_m.total_cmp(&b.trimmed_distance_m))
+                .expect("25 candidates")
+        })
+        .collect();
+    let mut out: Vec<CentredTurn> = refined
+        .into_iter()
+        .filter(|t| {
+            t.trimmed_distance_m < max_trimmed_m && t.origin_shift(&UnitQuaternion::identity()).norm() >= min_shift_m
+        })
+        .collect();
+    out.sort_by(|a, b| a.trimmed_distance_m.total_cmp(&b.trimmed_distance_m));
+    out
 }
 
 impl Symmetries {
@@ -565,6 +717,33 @@ mod tests {
             .mismatch_about_centroid_on(&rot(Vector3::x_axis(), PI), 1)
             .mean_distance_m;
         assert!(m < 0.25 * x180, "{m} against {x180}");
+    }
+
+    #[test]
+    fn the_mug_s_body_turned_about_its_own_axis_is_a_confusable_turn() {
+        // the handle keeps every turn of the whole mug far from a near-symmetry, but without it
+        // the body turned half about its own axis, 1 cm from the origin (the bounding box's
+        // centre, pulled towards the handle), is the same surface 2 cm away: the joint pose the
+        // tracker's turned mugs sat at
+        let mesh = Mesh::load(&shared_dir().join("ycb/025_mug.ply")).expect("mug in ../shared/ycb");
+        let d = mesh.diameter_m();
+        assert!(near_symmetric_turns(&mesh, 0.016 * d).is_empty());
+        let turns = confusable_turns(&mesh, 0.012 * d, 0.005);
+        let body = turns
+            .iter()
+            .find(|t| t.rotation.axis().is_some_and(|a| a.z.abs() > 0.99))
+            .unwrap_or_else(|| panic!("the body's turn about z: {turns:?}"));
+        let shift = body.origin_shift(&UnitQuaternion::identity());
+        assert!((0.015..0.025).contains(&shift.norm()), "{shift:?}");
+        assert!(
+            shift.x.abs() > 0.9 * shift.norm(),
+            "the shift is along the handle's axis: {shift:?}"
+        );
+        assert!(body.trimmed_distance_m < 0.002, "{body:?}");
+        // the trimmed distance leaves out the handle only: the turn through the origin is no match
+        let surface = ColoredSurface::new(&mesh, SURFACE_SAMPLES).expect("mesh");
+        let through_origin = surface.mismatch(&body.rotation).mean_distance_m;
+        assert!(through_origin > 0.005, "{through_origin}");
     }
 
     #[test]

@@ -100,15 +100,23 @@ pub struct Args {
 /// The default tracker configuration with the fields of `overrides` (a JSON object, nested
 /// objects merged field by field) put over it. Unknown fields and wrong types are errors.
 pub fn tracker_config_with(overrides: &serde_json::Value) -> anyhow::Result<TrackerConfig> {
-    fn merge(base: &mut serde_json::Value, over: &serde_json::Value, path: &str) -> anyhow::Result<()> {
+    // `full` names the optional settings that the defaults leave out (`twins`): an override
+    // that names one starts from that setting's own defaults
+    fn merge(
+        base: &mut serde_json::Value,
+        full: &serde_json::Value,
+        over: &serde_json::Value,
+        path: &str,
+    ) -> anyhow::Result<()> {
         match (base, over) {
             (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
                 for (k, v) in o {
                     let here = format!("{path}{k}");
-                    let slot = b
-                        .get_mut(k)
+                    let full_k = full
+                        .get(k)
                         .ok_or_else(|| anyhow::anyhow!("tracker config: unknown field `{here}`"))?;
-                    merge(slot, v, &format!("{here}."))?;
+                    let slot = b.entry(k.clone()).or_insert_with(|| full_k.clone());
+                    merge(slot, full_k, v, &format!("{here}."))?;
                 }
                 Ok(())
             }
@@ -122,7 +130,11 @@ pub fn tracker_config_with(overrides: &serde_json::Value) -> anyhow::Result<Trac
         anyhow::bail!("tracker config: expected a JSON object");
     }
     let mut base = serde_json::to_value(TrackerConfig::default())?;
-    merge(&mut base, overrides, "")?;
+    let full = serde_json::to_value(TrackerConfig {
+        twins: Some(crate::tracker::TwinConfig::default()),
+        ..TrackerConfig::default()
+    })?;
+    merge(&mut base, &full, overrides, "")?;
     serde_json::from_value(base).map_err(|e| anyhow::anyhow!("tracker config: {e}"))
 }
 
@@ -282,5 +294,13 @@ mod tests {
             .expect("verification overrides");
         assert_eq!(v.verification.min_view_change_deg, 10.0);
         assert_eq!(v.verification.occlusion_truncation, 0.5);
+        // an optional setting the defaults leave out starts from its own defaults
+        let t = tracker_config_with(&serde_json::json!({"twins": {"share": 0.1}})).expect("twins overrides");
+        let tw = t.twins.expect("twins on");
+        assert_eq!(tw.share, 0.1);
+        assert_eq!(tw.min_shift_m, crate::tracker::TwinConfig::default().min_shift_m);
+        assert!(d.twins.is_none());
+        let unknown = tracker_config_with(&serde_json::json!({"twins": {"sharee": 0.1}}));
+        assert!(unknown.unwrap_err().to_string().contains("twins.sharee"));
     }
 }

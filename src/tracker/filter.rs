@@ -131,7 +131,41 @@ pub struct TrackerConfig {
     /// object's diameter on average (`symmetry::near_symmetric_turns`).
     #[serde(default = "default_turn_max_distance_rel")]
     pub turn_max_distance_rel: f64,
+    /// Twins: each step a few particles jump to the pose an off-centre confusable turn makes
+    /// of theirs, rotation and position together. `None`: off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub twins: Option<TwinConfig>,
     pub seed: u64,
+}
+
+/// Twin particles for the joint modes a view confuses with the truth
+/// (`symmetry::confusable_turns`): the mug's body turned about its own axis shows the handle on
+/// the other side and sits two centimetres off, so the rotation histograms alone can never
+/// carry the track from one to the other (the particles near the truth hold the turned
+/// histogram of their ancestors, and the views weigh them down). Each step, `share` of a
+/// track's particles (at least one) per turn move to their turned pose: the position shifted
+/// by the turn's offset at the particle's top bin, the histogram turned. The views then weigh
+/// the twins as any particle, so a twin at the truth takes over within a few steps, and twins
+/// the views reject are resampled away.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TwinConfig {
+    /// Share of a track's particles that jump per turn and step.
+    pub share: f64,
+    /// Turns whose trimmed surface distance is below this share of the object's diameter.
+    pub max_trimmed_rel: f64,
+    /// Turns that shift the object's origin by at least this (m); those that shift it less
+    /// are turn mixing's (`turn_share`).
+    pub min_shift_m: f64,
+}
+
+impl Default for TwinConfig {
+    fn default() -> Self {
+        Self {
+            share: 0.05,
+            max_trimmed_rel: 0.012,
+            min_shift_m: 0.005,
+        }
+    }
 }
 
 /// The rotation blur of a track that is near and well explained. The blur is process noise
@@ -301,6 +335,7 @@ impl Default for TrackerConfig {
             registration: RegistrationConfig::default(),
             turn_share: default_turn_share(),
             turn_max_distance_rel: default_turn_max_distance_rel(),
+            twins: None,
             seed: 1,
         }
     }
@@ -329,6 +364,10 @@ struct Model {
     turns: Vec<nalgebra::Matrix3<f64>>,
     /// Every bin's partner under each turn on this model's grid (`sparse::turn_partners`).
     turn_partners: Vec<u32>,
+    /// The off-centre turns twins jump by ([`TwinConfig`]); empty when twins are off.
+    twin_turns: Vec<crate::symmetry::CentredTurn>,
+    /// Every bin's partner under each twin turn.
+    twin_partners: Vec<u32>,
 }
 
 /// State of one track.
@@ -508,6 +547,12 @@ impl Tracker {
         // partner table on the grid too
         let turns = self.turns_of(&mesh, &codebook);
         let turn_partners = crate::tracker::sparse::turn_partners(&tables, &turns);
+        let twin_turns = self.twin_turns_of(&mesh);
+        let twin_matrices: Vec<nalgebra::Matrix3<f64>> = twin_turns
+            .iter()
+            .map(|t| t.rotation.to_rotation_matrix().into_inner())
+            .collect();
+        let twin_partners = crate::tracker::sparse::turn_partners(&tables, &twin_matrices);
         if let Some(mi) = self.models.iter().position(|m| m.name == name) {
             // a better codebook for a known model: its tracks move to the new grid through
             // their compact snapshots (see `snapshot`), keeping particles and marginals
@@ -519,6 +564,8 @@ impl Tracker {
             let m = &mut self.models[mi];
             m.turn_partners = turn_partners;
             m.turns = turns;
+            m.twin_turns = twin_turns;
+            m.twin_partners = twin_partners;
             m.mesh = mesh;
             m.codebook = codebook;
             m.tables = tables;
@@ -534,7 +581,17 @@ impl Tracker {
             lattice,
             turns,
             turn_partners,
+            twin_turns,
+            twin_partners,
         });
+    }
+
+    /// The mesh's off-centre confusable turns (none when twins are off).
+    fn twin_turns_of(&self, mesh: &Mesh) -> Vec<crate::symmetry::CentredTurn> {
+        let Some(tw) = self.config.twins.filter(|t| t.share > 0.0) else {
+            return Vec::new();
+        };
+        crate::symmetry::confusable_turns_cached(mesh, tw.max_trimmed_rel * mesh.diameter_m(), tw.min_shift_m)
     }
 
     /// The mesh's near-symmetric turns as rotation matrices (none when turn mixing is off).
@@ -746,6 +803,9 @@ impl Tracker {
                     m.turns.len(),
                     self.config.turn_share as f32,
                 );
+                if let Some(tw) = self.config.twins {
+                    make_twins(s, m, tables, &tw, &mut self.rng);
+                }
                 // the halo's bins that stay near the floor go back to it: only the rest is
                 // matched at this step
                 if !matching.dense {
@@ -1080,6 +1140,48 @@ fn floor_components(s: &mut TrackState, min_weight: f64) {
         }
     }
     normalise(&mut s.weights);
+}
+
+/// Moves `share` of a track's particles (at least one) per off-centre turn of its model to
+/// their twin pose ([`TwinConfig`]): the histogram turned, the position shifted by the turn's
+/// offset at the particle's top bin. Particles on a uniform histogram have no pose to turn.
+fn make_twins(s: &mut TrackState, m: &Model, tables: &GridTables, tw: &TwinConfig, rng: &mut impl rand::Rng) {
+    let nt = m.twin_turns.len();
+    let n = s.n();
+    if nt == 0 || n < 2 || s.rot.active.is_empty() || tw.share <= 0.0 {
+        return;
+    }
+    let k = ((tw.share * n as f64).round() as usize).clamp(1, n / 2);
+    let nc = s.rot.n_cols();
+    for (j, turn) in m.twin_turns.iter().enumerate() {
+        let chosen = rand::seq::index::sample(rng, n, k).into_vec();
+        let mut parents: Vec<u32> = chosen.iter().map(|&p| s.rot.column_of[p]).collect();
+        parents.sort_unstable();
+        parents.dedup();
+        // each parent column's top bin, before the turned columns join
+        let tops: Vec<usize> = parents
+            .iter()
+            .map(|&c| {
+                (0..s.rot.active.len())
+                    .max_by(|&a, &b| s.rot.values[a * nc + c as usize].total_cmp(&s.rot.values[b * nc + c as usize]))
+                    .map_or(0, |a| s.rot.active[a] as usize)
+            })
+            .collect();
+        let turned =
+            crate::tracker::sparse::append_turned_columns(&mut s.rot, tables, &m.twin_partners, nt, j, &parents);
+        for &p in &chosen {
+            let i = parents.binary_search(&s.rot.column_of[p]).expect("a parent");
+            let t_h = s
+                .reference_from_hist
+                .inverse_transform_point(&nalgebra::Point3::from(s.positions[p]))
+                .coords;
+            let r_ref = s.reference_from_hist.rotation
+                * crate::geometry::ray_rotation(&t_h)
+                * UnitQuaternion::from_matrix(&tables.matrix(tops[i]));
+            s.positions[p] += turn.origin_shift(&r_ref);
+            s.rot.column_of[p] = turned[i];
+        }
+    }
 }
 
 #[cfg(test)]

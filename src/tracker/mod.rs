@@ -72,7 +72,7 @@ pub use codebook::{Codebook, CodebookConfig, ColorFeatures};
 pub use encoder::{Encoder, LinearDenoisingEncoder};
 pub use filter::{
     NearBlur, RecoveryConfig, RegistrationConfig, SpreadConfig, TrackPrior, TrackSnapshot, Tracker, TrackerConfig,
-    TrackerSnapshot, VerificationConfig,
+    TrackerSnapshot, TwinConfig, VerificationConfig,
 };
 
 /// Errors of the tracker module.

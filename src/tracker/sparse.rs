@@ -616,6 +616,75 @@ pub fn turn_partners(tables: &GridTables, turns: &[Matrix3<f64>]) -> Vec<u32> {
         .collect()
 }
 
+/// Appends, for each column of `parents`, a column holding it turned by turn `j` of
+/// `partners_of` (`nt` turns a bin; [`turn_partners`]): the new column's value at bin `b` is
+/// the parent's at `b`'s partner (a half turn is its own inverse). The partners of the active
+/// bins join the active set; the new columns are normalised. Returns the new columns, in the
+/// order of `parents`.
+pub fn append_turned_columns(
+    state: &mut RotationState,
+    tables: &GridTables,
+    partners_of: &[u32],
+    nt: usize,
+    j: usize,
+    parents: &[u32],
+) -> Vec<u32> {
+    let nc = state.n_cols();
+    if parents.is_empty() || nt == 0 || j >= nt {
+        return Vec::new();
+    }
+    let partner = |b: u32| partners_of[b as usize * nt + j];
+    let mut all: Vec<u32> = state
+        .active
+        .iter()
+        .copied()
+        .chain(state.active.iter().map(|&b| partner(b)))
+        .collect();
+    all.sort_unstable();
+    all.dedup();
+    let k = parents.len();
+    let width = nc + k;
+    let mut vals = vec![0f32; all.len() * width];
+    let old = &*state;
+    vals.par_chunks_mut(width)
+        .with_min_len(64)
+        .enumerate()
+        .for_each(|(r, row)| {
+            let b = all[r];
+            match old.slot(b as usize) {
+                Some(a) => row[..nc].copy_from_slice(&old.values[a * nc..(a + 1) * nc]),
+                None => {
+                    let vol = tables.volume(b as usize) as f32;
+                    for (v, f) in row[..nc].iter_mut().zip(&old.floors) {
+                        *v = f * vol;
+                    }
+                }
+            }
+            let src = partner(b) as usize;
+            for (i, c) in parents.iter().enumerate() {
+                row[nc + i] = old.value(tables, src, *c as usize);
+            }
+        });
+    let floors: Vec<f32> = parents.iter().map(|c| state.floors[*c as usize]).collect();
+    state.active = all;
+    state.values = vals;
+    state.floors.extend(floors);
+    // the new columns to mass 1 (the gathered values need not sum to the parent's)
+    let masses = state.column_masses(tables);
+    let w = state.n_cols();
+    for i in nc..w {
+        let m = masses[i];
+        if m > 0.0 {
+            let inv = (1.0 / m) as f32;
+            for row in state.values.chunks_mut(w) {
+                row[i] *= inv;
+            }
+            state.floors[i] *= inv;
+        }
+    }
+    (nc as u32..w as u32).collect()
+}
+
 /// Moves `share` of each column's mass above its floor at every active bin onto the bins of
 /// that bin's `nt` turns (object frame: bin `b`'s rotation times the turn, read from
 /// `partners_of`, [`turn_partners`]), in equal parts; the partner bins join the active set.
@@ -909,6 +978,63 @@ mod tests {
             .filter(|(g, s)| g.to_bits() != s.to_bits())
             .count();
         assert_eq!(differing, 0, "{differing} values differ");
+    }
+
+    #[test]
+    fn a_turned_column_holds_its_parent_s_mass_at_the_turned_bins() {
+        let grid = RotationGrid::new(15).unwrap();
+        let tables = GridTables::new(grid);
+        let b = (10 * grid.n_azimuth() + 5) * grid.n_inplane() + 7;
+        let (floor, vol) = (0.01f32, tables.volume(b) as f32);
+        // two columns: the first peaked at `b`, the second at another bin
+        let other = b + 3 * grid.n_inplane();
+        let mut active = vec![b as u32, other as u32];
+        active.sort_unstable();
+        let at0 = active.binary_search(&(b as u32)).unwrap();
+        let mut values = vec![0f32; 4];
+        for (a, bin) in active.iter().enumerate() {
+            let v = tables.volume(*bin as usize) as f32 * floor;
+            values[a * 2] = v + if a == at0 { 1.0 } else { 0.0 };
+            values[a * 2 + 1] = v + if a == at0 { 0.0 } else { 1.0 };
+        }
+        let mut state = RotationState {
+            active,
+            values,
+            floors: vec![floor, floor],
+            column_of: vec![0, 1, 1],
+        };
+        state.renormalise(&tables);
+        let masses_before = state.column_masses(&tables);
+        let turn = UnitQuaternion::from_axis_angle(&nalgebra::Vector3::z_axis(), std::f64::consts::PI);
+        let t = turn.to_rotation_matrix().into_inner();
+        let partners = turn_partners(&tables, &[t]);
+        let new = append_turned_columns(&mut state, &tables, &partners, 1, 0, &[0]);
+        assert_eq!(new, vec![2]);
+        assert_eq!(state.n_cols(), 3);
+        assert_eq!(state.column_of, vec![0, 1, 1], "no particle moves onto it by itself");
+        let masses = state.column_masses(&tables);
+        for c in 0..2 {
+            assert!(
+                (masses[c] - masses_before[c]).abs() < 1e-5,
+                "column {c} keeps its mass: {masses:?}"
+            );
+        }
+        assert!(
+            (masses[2] - 1.0).abs() < 1e-5,
+            "the new column is normalised: {masses:?}"
+        );
+        // the first column's peak sits at the turned bin of the new column, and only there
+        let partner = flat_of_matrix(&grid, &(tables.matrix(b) * t));
+        assert_ne!(partner, b);
+        let peak = (0..grid.len())
+            .max_by(|x, y| state.value(&tables, *x, 2).total_cmp(&state.value(&tables, *y, 2)))
+            .unwrap();
+        assert_eq!(peak, partner);
+        assert!(state.value(&tables, partner, 2) > 0.5 + floor * vol);
+        // the old columns at the new active bin are their floor
+        let vp = tables.volume(partner) as f32;
+        let v0 = state.value(&tables, partner, 0);
+        assert!((v0 - state.floors[0] * vp).abs() <= 1e-6 * v0.max(1e-12), "{v0}");
     }
 
     #[test]
