@@ -224,6 +224,24 @@ impl ColoredSurface {
         }
     }
 
+    /// The mean distance to the surface of the best [`CONFUSABLE_KEEP_SHARE`] of every
+    /// `stride`-th sample turned by `rotation` about an axis through `centre`.
+    fn trimmed_distance(&self, rotation: &UnitQuaternion<f64>, centre: &Vector3<f64>, stride: usize) -> f64 {
+        let moved = Isometry3::from_parts(Translation3::from(centre - rotation * centre), *rotation);
+        let mut d: Vec<f64> = self
+            .points_m
+            .iter()
+            .step_by(stride.max(1))
+            .map(|p| {
+                let m = moved * p;
+                (self.nearest_point(&m) - m).norm()
+            })
+            .collect();
+        d.sort_by(|a, b| a.total_cmp(b));
+        let keep = ((d.len() as f64 * CONFUSABLE_KEEP_SHARE).ceil() as usize).clamp(1, d.len().max(1));
+        d[..keep.min(d.len())].iter().sum::<f64>() / keep.min(d.len()).max(1) as f64
+    }
+
     /// The surface's nearest point to `p`.
     fn nearest_point(&self, p: &Point3<f64>) -> Point3<f64> {
         use parry3d::query::PointQuery;
@@ -417,16 +435,17 @@ impl CentredTurn {
 }
 
 /// Share of the surface samples (the nearest to the surface after the turn) that
-/// [`confusable_turns`] scores: a mug's handle, a drill's trigger are about a tenth of the
-/// surface, and a view that does not see them confuses the turn that moves only them.
-pub const CONFUSABLE_KEEP_SHARE: f64 = 0.8;
+/// [`confusable_turns`] scores: a mug's handle is about a tenth of the surface, and a view
+/// that does not see it confuses the turn that moves only it.
+pub const CONFUSABLE_KEEP_SHARE: f64 = 0.9;
 
-/// Half turns about axes through any point, under which all but the worst fifth of the
+/// Half turns about axes through any point, under which all but the worst tenth of the
 /// surface moves by less than `max_trimmed_m` on average, and whose axis passes at least
 /// `min_shift_m / 2` from the origin (a turn through the origin the histograms mix in place):
 /// the joint poses, rotation and position, a view confuses with the truth when a small part
 /// of the object is hidden or too small to see (the mug's body turned about its own axis, the
-/// handle on the other side). At most three, 30 degrees apart, best first.
+/// handle on the other side). At most three half turns, 30 degrees apart, best first, then the
+/// quarter turns either way about the same axes that pass the same test.
 pub fn confusable_turns(mesh: &Mesh, max_trimmed_m: f64, min_shift_m: f64) -> Vec<CentredTurn> {
     use rayon::prelude::*;
     let Some(surface) = ColoredSurface::new(mesh, SURFACE_SAMPLES) else {
@@ -469,13 +488,29 @@ pub fn confusable_turns(mesh: &Mesh, max_trimmed_m: f64, min_shift_m: f64) -> Ve
                 .expect("25 candidates")
         })
         .collect();
-    let mut out: Vec<CentredTurn> = refined
-        .into_iter()
-        .filter(|t| {
-            t.trimmed_distance_m < max_trimmed_m && t.origin_shift(&UnitQuaternion::identity()).norm() >= min_shift_m
-        })
-        .collect();
+    let keep = |t: &CentredTurn| {
+        t.trimmed_distance_m < max_trimmed_m && t.origin_shift(&UnitQuaternion::identity()).norm() >= min_shift_m
+    };
+    let mut out: Vec<CentredTurn> = refined.into_iter().filter(keep).collect();
     out.sort_by(|a, b| a.trimmed_distance_m.total_cmp(&b.trimmed_distance_m));
+    // a body of revolution (the mug's) is also confused a quarter turn either way about the
+    // same axis: the handle turned towards or away from the camera
+    let quarters: Vec<CentredTurn> = out
+        .iter()
+        .flat_map(|t| {
+            let axis = t.rotation.axis().unwrap_or_else(Vector3::z_axis);
+            [1.0, -1.0].map(|sign| {
+                let rotation = UnitQuaternion::from_axis_angle(&axis, sign * std::f64::consts::FRAC_PI_2);
+                CentredTurn {
+                    rotation,
+                    centre_m: t.centre_m,
+                    trimmed_distance_m: surface.trimmed_distance(&rotation, &t.centre_m, 2),
+                }
+            })
+        })
+        .filter(keep)
+        .collect();
+    out.extend(quarters);
     out
 }
 
@@ -740,6 +775,17 @@ mod tests {
             "the shift is along the handle's axis: {shift:?}"
         );
         assert!(body.trimmed_distance_m < 0.002, "{body:?}");
+        assert_relative_eq!(body.rotation.angle(), PI, epsilon = 1e-9);
+        // and a quarter turn either way about the same axis: the handle towards or away from a view
+        let quarters: Vec<_> = turns
+            .iter()
+            .filter(|t| (t.rotation.angle() - 0.5 * PI).abs() < 1e-9 && t.centre_m == body.centre_m)
+            .collect();
+        assert_eq!(quarters.len(), 2, "{turns:?}");
+        for q in quarters {
+            let s = q.origin_shift(&UnitQuaternion::identity()).norm();
+            assert!((s - shift.norm() / 2f64.sqrt()).abs() < 1e-3, "{q:?}");
+        }
         // the trimmed distance leaves out the handle only: the turn through the origin is no match
         let surface = ColoredSurface::new(&mesh, SURFACE_SAMPLES).expect("mesh");
         let through_origin = surface.mismatch(&body.rotation).mean_distance_m;

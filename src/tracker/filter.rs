@@ -138,6 +138,11 @@ pub struct TrackerConfig {
     pub seed: u64,
 }
 
+/// A confusable turn this near a turn that turn mixing already moves mass to gets no twins:
+/// on the tuning set the banana's end swap with both lost 0.7 nats of the truth's
+/// log-likelihood (`docs/decisions.md`, "Twins for the mug's turned body").
+const TWIN_MIXED_TURN_RAD: f64 = 10.0 * std::f64::consts::PI / 180.0;
+
 /// Twin particles for the joint modes a view confuses with the truth
 /// (`symmetry::confusable_turns`): the mug's body turned about its own axis shows the handle on
 /// the other side and sits two centimetres off, so the rotation histograms alone can never
@@ -146,7 +151,8 @@ pub struct TrackerConfig {
 /// track's particles (at least one) per turn move to their turned pose: the position shifted
 /// by the turn's offset at the particle's top bin, the histogram turned. The views then weigh
 /// the twins as any particle, so a twin at the truth takes over within a few steps, and twins
-/// the views reject are resampled away.
+/// the views reject are resampled away. Off by default: measured on the mug, not yet better
+/// held out (`docs/decisions.md`, "Twins for the mug's turned body").
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TwinConfig {
     /// Share of a track's particles that jump per turn and step.
@@ -156,6 +162,15 @@ pub struct TwinConfig {
     /// Turns that shift the object's origin by at least this (m); those that shift it less
     /// are turn mixing's (`turn_share`).
     pub min_shift_m: f64,
+    /// Twins only for a track whose last rotation entropy is below this share of the
+    /// uniform's: the shift's direction follows the particle's rotation, and twins of a
+    /// rotation the track does not know scatter its positions by the shift at random.
+    #[serde(default = "default_twin_max_entropy_rel")]
+    pub max_entropy_rel: f64,
+}
+
+fn default_twin_max_entropy_rel() -> f64 {
+    0.75
 }
 
 impl Default for TwinConfig {
@@ -164,6 +179,7 @@ impl Default for TwinConfig {
             share: 0.05,
             max_trimmed_rel: 0.012,
             min_shift_m: 0.005,
+            max_entropy_rel: default_twin_max_entropy_rel(),
         }
     }
 }
@@ -547,7 +563,7 @@ impl Tracker {
         // partner table on the grid too
         let turns = self.turns_of(&mesh, &codebook);
         let turn_partners = crate::tracker::sparse::turn_partners(&tables, &turns);
-        let twin_turns = self.twin_turns_of(&mesh);
+        let twin_turns = self.twin_turns_of(&mesh, &turns);
         let twin_matrices: Vec<nalgebra::Matrix3<f64>> = twin_turns
             .iter()
             .map(|t| t.rotation.to_rotation_matrix().into_inner())
@@ -586,12 +602,17 @@ impl Tracker {
         });
     }
 
-    /// The mesh's off-centre confusable turns (none when twins are off).
-    fn twin_turns_of(&self, mesh: &Mesh) -> Vec<crate::symmetry::CentredTurn> {
+    /// The mesh's off-centre confusable turns (none when twins are off), less those within
+    /// [`TWIN_MIXED_TURN_RAD`] of a turn that turn mixing moves mass to (`mixed`).
+    fn twin_turns_of(&self, mesh: &Mesh, mixed: &[nalgebra::Matrix3<f64>]) -> Vec<crate::symmetry::CentredTurn> {
         let Some(tw) = self.config.twins.filter(|t| t.share > 0.0) else {
             return Vec::new();
         };
+        let mixed: Vec<UnitQuaternion<f64>> = mixed.iter().map(UnitQuaternion::from_matrix).collect();
         crate::symmetry::confusable_turns_cached(mesh, tw.max_trimmed_rel * mesh.diameter_m(), tw.min_shift_m)
+            .into_iter()
+            .filter(|t| mixed.iter().all(|q| q.angle_to(&t.rotation) > TWIN_MIXED_TURN_RAD))
+            .collect()
     }
 
     /// The mesh's near-symmetric turns as rotation matrices (none when turn mixing is off).
@@ -1144,11 +1165,19 @@ fn floor_components(s: &mut TrackState, min_weight: f64) {
 
 /// Moves `share` of a track's particles (at least one) per off-centre turn of its model to
 /// their twin pose ([`TwinConfig`]): the histogram turned, the position shifted by the turn's
-/// offset at the particle's top bin. Particles on a uniform histogram have no pose to turn.
+/// offset at the particle's top bin. A track whose rotation is not known well enough has no
+/// pose to turn.
 fn make_twins(s: &mut TrackState, m: &Model, tables: &GridTables, tw: &TwinConfig, rng: &mut impl rand::Rng) {
     let nt = m.twin_turns.len();
     let n = s.n();
     if nt == 0 || n < 2 || s.rot.active.is_empty() || tw.share <= 0.0 {
+        return;
+    }
+    let uniform = (tables.grid.len() as f64).ln();
+    if s.estimate
+        .as_ref()
+        .is_none_or(|e| e.rotation_entropy > tw.max_entropy_rel * uniform)
+    {
         return;
     }
     let k = ((tw.share * n as f64).round() as usize).clamp(1, n / 2);
@@ -1178,7 +1207,13 @@ fn make_twins(s: &mut TrackState, m: &Model, tables: &GridTables, tw: &TwinConfi
             let r_ref = s.reference_from_hist.rotation
                 * crate::geometry::ray_rotation(&t_h)
                 * UnitQuaternion::from_matrix(&tables.matrix(tops[i]));
-            s.positions[p] += turn.origin_shift(&r_ref);
+            // the turned column holds the parent's mass at `R * turn^-1` (it reads bin `b` at
+            // `b * turn`): the twin is the pose turned by the inverse
+            let inverse = crate::symmetry::CentredTurn {
+                rotation: turn.rotation.inverse(),
+                ..*turn
+            };
+            s.positions[p] += inverse.origin_shift(&r_ref);
             s.rot.column_of[p] = turned[i];
         }
     }
