@@ -299,36 +299,32 @@ const MAX_CACHED_TURNS: usize = 64;
 /// second per model, and a tracker adds a model again whenever its codebook is rebuilt (the
 /// service's coarse grid, then its fine one), on the thread that steps the tracks.
 pub fn near_symmetric_turns_cached(mesh: &Mesh, max_distance_m: f64) -> Vec<UnitQuaternion<f64>> {
-    use std::collections::HashMap;
-    use std::sync::{Mutex, OnceLock};
-    type Cache = Mutex<HashMap<(String, u64), Vec<UnitQuaternion<f64>>>>;
-    static CACHE: OnceLock<Cache> = OnceLock::new();
-    let key = (mesh.content_hash(), max_distance_m.to_bits());
-    let cache = CACHE.get_or_init(|| Mutex::new(HashMap::new()));
-    if let Some(t) = cache.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
-        return t.clone();
-    }
-    let turns = near_symmetric_turns(mesh, max_distance_m);
-    let mut map = cache.lock().unwrap_or_else(|e| e.into_inner());
-    if map.len() >= MAX_CACHED_TURNS {
-        map.clear();
-    }
-    map.insert(key, turns.clone());
-    turns
+    type Cache = TurnCache<(String, u64), Vec<UnitQuaternion<f64>>>;
+    static CACHE: Cache = std::sync::OnceLock::new();
+    cached(&CACHE, (mesh.content_hash(), max_distance_m.to_bits()), || {
+        near_symmetric_turns(mesh, max_distance_m)
+    })
 }
 
 /// [`confusable_turns`] kept per mesh content and limits, as [`near_symmetric_turns_cached`].
 pub fn confusable_turns_cached(mesh: &Mesh, max_trimmed_m: f64, min_shift_m: f64) -> Vec<CentredTurn> {
-    use std::collections::HashMap;
-    use std::sync::{Mutex, OnceLock};
-    type Cache = Mutex<HashMap<(String, u64, u64), Vec<CentredTurn>>>;
-    static CACHE: OnceLock<Cache> = OnceLock::new();
+    type Cache = TurnCache<(String, u64, u64), Vec<CentredTurn>>;
+    static CACHE: Cache = std::sync::OnceLock::new();
     let key = (mesh.content_hash(), max_trimmed_m.to_bits(), min_shift_m.to_bits());
-    let cache = CACHE.get_or_init(|| Mutex::new(HashMap::new()));
+    cached(&CACHE, key, || confusable_turns(mesh, max_trimmed_m, min_shift_m))
+}
+
+/// A process-wide cache of searched turns, keyed by mesh content and limits.
+type TurnCache<K, V> = std::sync::OnceLock<std::sync::Mutex<std::collections::HashMap<K, V>>>;
+
+/// The value of `key` in `cache`, computed by `search` (outside the lock) when missing; the
+/// cache starts again past [`MAX_CACHED_TURNS`] meshes.
+fn cached<K: std::hash::Hash + Eq, V: Clone>(cache: &TurnCache<K, V>, key: K, search: impl FnOnce() -> V) -> V {
+    let cache = cache.get_or_init(Default::default);
     if let Some(t) = cache.lock().unwrap_or_else(|e| e.into_inner()).get(&key) {
         return t.clone();
     }
-    let turns = confusable_turns(mesh, max_trimmed_m, min_shift_m);
+    let turns = search();
     let mut map = cache.lock().unwrap_or_else(|e| e.into_inner());
     if map.len() >= MAX_CACHED_TURNS {
         map.clear();
