@@ -280,7 +280,17 @@ fn two_instances_do_not_make_a_track_oscillate() {
 /// stationary cameras, the first the reference: a tracker with its coarse codebook (one track
 /// per object), the scene and the object's true pose in the reference camera.
 fn object_on_table(name: &str, yaw_rad: f64, cams: &[(&str, Pose)], config: TrackerConfig) -> (Tracker, Scene, Pose) {
-    let mesh = pregrasp::mesh::builtin(name).unwrap();
+    mesh_on_table(name, pregrasp::mesh::builtin(name).unwrap(), yaw_rad, cams, config)
+}
+
+/// [`object_on_table`] for any mesh, named `name`.
+fn mesh_on_table(
+    name: &str,
+    mesh: pregrasp::mesh::Mesh,
+    yaw_rad: f64,
+    cams: &[(&str, Pose)],
+    config: TrackerConfig,
+) -> (Tracker, Scene, Pose) {
     let cb = coarse_codebook(&mesh);
     let truth_world = on_table(&mesh, 0.0, 0.0, yaw_rad);
     let scene = Scene::new(vec![(name.into(), mesh.clone(), truth_world)]);
@@ -475,24 +485,12 @@ fn turned_start(twins: Option<TwinConfig>) -> (Option<u64>, f64, f64) {
         ("a", look_at([0.42, -0.25, 0.3], [0.0, 0.0, 0.045])),
         ("b", look_at([-0.1, -0.48, 0.28], [0.0, 0.0, 0.045])),
     ];
+    // the handle away from camera a (whose view of the turned pose shows it) and side on to b
     let config = TrackerConfig {
         twins,
         ..TrackerConfig::default()
     };
-    let cb = coarse_codebook(&mesh);
-    // the handle away from camera a (whose view of the turned pose shows it) and side on to b
-    let truth_world = on_table(&mesh, 0.0, 0.0, 2.97);
-    let scene = Scene::new(vec![("mug".into(), mesh.clone(), truth_world)]);
-    let mut tracker = Tracker::new(
-        TrackerConfig {
-            max_tracks_per_object: 1,
-            ..config
-        },
-        stationary(&cams),
-        "a".into(),
-    );
-    tracker.add_object_model("mug", mesh.clone(), cb);
-    let truth = cams[0].1.inverse() * truth_world;
+    let (mut tracker, scene, truth) = mesh_on_table("mug", mesh, 2.97, &cams, config);
     let turned = Pose::from_parts(
         (truth.translation.vector + turn.origin_shift(&truth.rotation)).into(),
         truth.rotation * turn.rotation,
