@@ -469,7 +469,7 @@ fn ycb_mug() -> pregrasp::mesh::Mesh {
     pregrasp::mesh::Mesh::load(&shared.join("ycb/025_mug.ply")).expect("the mug in ../shared/ycb")
 }
 
-/// Two near cameras that see the mug's handle; the track starts on the mug's body turned about
+/// Three near cameras that see the mug's handle; the track starts on the mug's body turned about
 /// its own axis (rotation and position of the turned joint pose, both confident). Returns the
 /// step (10 Hz) from which the position's error stayed below 1 cm, and the rotation's densities
 /// at the truth and at the turned pose after twenty steps (2 s).
@@ -484,6 +484,7 @@ fn turned_start(twins: Option<TwinConfig>) -> (Option<u64>, f64, f64) {
     let cams = [
         ("a", look_at([0.42, -0.25, 0.3], [0.0, 0.0, 0.045])),
         ("b", look_at([-0.1, -0.48, 0.28], [0.0, 0.0, 0.045])),
+        ("c", look_at([-0.3, 0.35, 0.3], [0.0, 0.0, 0.045])),
     ];
     // the handle away from camera a (whose view of the turned pose shows it) and side on to b
     let config = TrackerConfig {
@@ -537,7 +538,8 @@ fn twins_carry_a_track_from_the_mug_s_turned_body_to_the_truth() {
     );
     assert!(truth > turned, "twins: {truth:.3e} against {turned:.3e}");
     // without twins, or with twins of a track whose rotation is too uncertain to turn, the
-    // track leaves the turned pose only as the blur and the Brownian steps let it, later
+    // track stays on the turned pose (or leaves it only as the blur and the Brownian steps let
+    // it, later)
     let shut = TwinConfig {
         max_entropy_rel: 0.5,
         ..TwinConfig::default()

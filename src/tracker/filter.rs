@@ -1181,7 +1181,6 @@ fn make_twins(s: &mut TrackState, m: &Model, tables: &GridTables, tw: &TwinConfi
         return;
     }
     let k = ((tw.share * n as f64).round() as usize).clamp(1, n / 2);
-    let nc = s.rot.n_cols();
     for (j, turn) in m.twin_turns.iter().enumerate() {
         let chosen = rand::seq::index::sample(rng, n, k).into_vec();
         let mut parents: Vec<u32> = chosen.iter().map(|&p| s.rot.column_of[p]).collect();
@@ -1190,11 +1189,7 @@ fn make_twins(s: &mut TrackState, m: &Model, tables: &GridTables, tw: &TwinConfi
         // each parent column's top bin, before the turned columns join
         let tops: Vec<usize> = parents
             .iter()
-            .map(|&c| {
-                (0..s.rot.active.len())
-                    .max_by(|&a, &b| s.rot.values[a * nc + c as usize].total_cmp(&s.rot.values[b * nc + c as usize]))
-                    .map_or(0, |a| s.rot.active[a] as usize)
-            })
+            .map(|&c| s.rot.top_bin(c as usize).unwrap_or(0))
             .collect();
         let turned =
             crate::tracker::sparse::append_turned_columns(&mut s.rot, tables, &m.twin_partners, nt, j, &parents);

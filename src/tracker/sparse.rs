@@ -103,6 +103,14 @@ impl RotationState {
         }
     }
 
+    /// Column `c`'s active bin of the largest value (`None` with no active bin).
+    pub fn top_bin(&self, c: usize) -> Option<usize> {
+        let nc = self.n_cols();
+        (0..self.active.len())
+            .max_by(|&a, &b| self.values[a * nc + c].total_cmp(&self.values[b * nc + c]))
+            .map(|a| self.active[a] as usize)
+    }
+
     /// Volume of the inactive bins.
     pub fn inactive_volume(&self, tables: &GridTables) -> f64 {
         (1.0 - self.active.iter().map(|b| tables.volume(*b as usize)).sum::<f64>()).max(0.0)
@@ -1030,6 +1038,10 @@ mod tests {
             .max_by(|x, y| state.value(&tables, *x, 2).total_cmp(&state.value(&tables, *y, 2)))
             .unwrap();
         assert_eq!(peak, partner);
+        // each column's top bin, read at the state's new width
+        assert_eq!(state.top_bin(0), Some(b));
+        assert_eq!(state.top_bin(1), Some(other));
+        assert_eq!(state.top_bin(2), Some(partner));
         assert!(state.value(&tables, partner, 2) > 0.5 + floor * vol);
         // the old columns at the new active bin are their floor
         let vp = tables.volume(partner) as f32;
