@@ -151,8 +151,8 @@ const TWIN_MIXED_TURN_RAD: f64 = 10.0 * std::f64::consts::PI / 180.0;
 /// track's particles (at least one) per turn move to their turned pose: the position shifted
 /// by the turn's offset at the particle's top bin, the histogram turned. The views then weigh
 /// the twins as any particle, so a twin at the truth takes over within a few steps, and twins
-/// the views reject are resampled away. Off by default: measured on the mug, not yet better
-/// held out (`docs/decisions.md`, "Twins for the mug's turned body").
+/// the views reject are resampled away. Off by default until the calibration map is refitted
+/// for it (`docs/decisions.md`, "Twins for the mug's turned body").
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TwinConfig {
     /// Share of a track's particles that jump per turn and step.
