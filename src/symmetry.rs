@@ -193,25 +193,10 @@ impl ColoredSurface {
         let mut centre = self.centroid_m.coords;
         let mut trimmed = f64::INFINITY;
         for _ in 0..3 {
-            let moved = Isometry3::from_parts(Translation3::from(centre - rotation * centre), rotation);
-            let mut res: Vec<(f64, Vector3<f64>)> = self
-                .points_m
-                .iter()
-                .step_by(stride.max(1))
-                .map(|p| {
-                    let m = moved * p;
-                    let q = self.nearest_point(&m);
-                    ((q - m).norm(), q - m)
-                })
-                .collect();
-            res.sort_by(|a, b| a.0.total_cmp(&b.0));
-            let keep = ((res.len() as f64 * CONFUSABLE_KEEP_SHARE).ceil() as usize).clamp(1, res.len().max(1));
-            let kept = &res[..keep.min(res.len())];
-            if kept.is_empty() {
+            let Some((d, mean)) = self.trimmed_residual(&rotation, &centre, stride) else {
                 break;
-            }
-            trimmed = kept.iter().map(|r| r.0).sum::<f64>() / kept.len() as f64;
-            let mean: Vector3<f64> = kept.iter().map(|r| r.1).sum::<Vector3<f64>>() / kept.len() as f64;
+            };
+            trimmed = d;
             let across = mean - axis.as_ref() * axis.dot(&mean);
             centre += 0.5 * across;
         }
@@ -227,19 +212,40 @@ impl ColoredSurface {
     /// The mean distance to the surface of the best [`CONFUSABLE_KEEP_SHARE`] of every
     /// `stride`-th sample turned by `rotation` about an axis through `centre`.
     fn trimmed_distance(&self, rotation: &UnitQuaternion<f64>, centre: &Vector3<f64>, stride: usize) -> f64 {
+        self.trimmed_residual(rotation, centre, stride).map_or(0.0, |(d, _)| d)
+    }
+
+    /// For the best [`CONFUSABLE_KEEP_SHARE`] of every `stride`-th sample turned by `rotation`
+    /// about an axis through `centre`: their mean distance to the surface and their mean
+    /// residual (from the turned sample to its nearest surface point). `None` without samples.
+    fn trimmed_residual(
+        &self,
+        rotation: &UnitQuaternion<f64>,
+        centre: &Vector3<f64>,
+        stride: usize,
+    ) -> Option<(f64, Vector3<f64>)> {
         let moved = Isometry3::from_parts(Translation3::from(centre - rotation * centre), *rotation);
-        let mut d: Vec<f64> = self
+        let mut res: Vec<(f64, Vector3<f64>)> = self
             .points_m
             .iter()
             .step_by(stride.max(1))
             .map(|p| {
                 let m = moved * p;
-                (self.nearest_point(&m) - m).norm()
+                let r = self.nearest_point(&m) - m;
+                (r.norm(), r)
             })
             .collect();
-        d.sort_by(|a, b| a.total_cmp(b));
-        let keep = ((d.len() as f64 * CONFUSABLE_KEEP_SHARE).ceil() as usize).clamp(1, d.len().max(1));
-        d[..keep.min(d.len())].iter().sum::<f64>() / keep.min(d.len()).max(1) as f64
+        res.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let keep = ((res.len() as f64 * CONFUSABLE_KEEP_SHARE).ceil() as usize).min(res.len());
+        let kept = &res[..keep];
+        if kept.is_empty() {
+            return None;
+        }
+        let n = kept.len() as f64;
+        Some((
+            kept.iter().map(|r| r.0).sum::<f64>() / n,
+            kept.iter().map(|r| r.1).sum::<Vector3<f64>>() / n,
+        ))
     }
 
     /// The surface's nearest point to `p`.
@@ -336,6 +342,23 @@ fn cached<K: std::hash::Hash + Eq, V: Clone>(cache: &TurnCache<K, V>, key: K, se
 /// Axis step of [`best_half_turn`]'s coarse search (its refinement goes to a tenth of it).
 const HALF_TURN_SEARCH_STEP_RAD: f64 = 10.0 * std::f64::consts::PI / 180.0;
 
+/// The axis at elevation `el` and azimuth `az` (rad).
+fn hemisphere_axis(el: f64, az: f64) -> Vector3<f64> {
+    Vector3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin())
+}
+
+/// (elevation, azimuth) of the axes over a hemisphere every [`HALF_TURN_SEARCH_STEP_RAD`] (a
+/// half turn about `-a` is the one about `a`), the pole once: the coarse pass of the searches.
+fn hemisphere_grid() -> Vec<(f64, f64)> {
+    let step = HALF_TURN_SEARCH_STEP_RAD;
+    (0..=9)
+        .flat_map(|i| {
+            let n_az = if i == 9 { 1 } else { 36 };
+            (0..n_az).map(move |j| (i as f64 * step, j as f64 * step))
+        })
+        .collect()
+}
+
 /// Where the axes of [`best_half_turn`] pass through.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum TurnCentre {
@@ -359,7 +382,7 @@ enum TurnCentre {
 fn best_half_turn(surface: &ColoredSurface, centre: TurnCentre) -> (UnitQuaternion<f64>, f64) {
     use rayon::prelude::*;
     let half_turn = |a: Vector3<f64>| UnitQuaternion::from_axis_angle(&Unit::new_normalize(a), std::f64::consts::PI);
-    let axis = |el: f64, az: f64| Vector3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+    let axis = hemisphere_axis;
     let score = |axes: Vec<(f64, f64)>, stride: usize| -> Vec<(f64, f64, f64)> {
         axes.into_par_iter()
             .map(|(el, az)| {
@@ -387,13 +410,7 @@ fn best_half_turn(surface: &ColoredSurface, centre: TurnCentre) -> (UnitQuaterni
             .collect()
     };
     let step = HALF_TURN_SEARCH_STEP_RAD;
-    let coarse: Vec<_> = (0..=9)
-        .flat_map(|i| {
-            let n_az = if i == 9 { 1 } else { 36 };
-            (0..n_az).map(move |j| (i as f64 * step, j as f64 * step))
-        })
-        .collect();
-    let mut scored = score(coarse, 8);
+    let mut scored = score(hemisphere_grid(), 8);
     scored.sort_by(|a, b| a.2.total_cmp(&b.2));
     let mut seeds: Vec<(f64, f64, f64)> = Vec::new();
     for c in scored {
@@ -447,18 +464,11 @@ pub fn confusable_turns(mesh: &Mesh, max_trimmed_m: f64, min_shift_m: f64) -> Ve
     let Some(surface) = ColoredSurface::new(mesh, SURFACE_SAMPLES) else {
         return Vec::new();
     };
-    let axis = |el: f64, az: f64| Vector3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
     let step = HALF_TURN_SEARCH_STEP_RAD;
-    let coarse: Vec<(f64, f64)> = (0..=9)
-        .flat_map(|i| {
-            let n_az = if i == 9 { 1 } else { 36 };
-            (0..n_az).map(move |j| (i as f64 * step, j as f64 * step))
-        })
-        .collect();
     let fit = |a: Vector3<f64>, stride: usize| surface.centred_half_turn(&Unit::new_normalize(a), stride);
-    let mut scored: Vec<(Vector3<f64>, CentredTurn)> = coarse
+    let mut scored: Vec<(Vector3<f64>, CentredTurn)> = hemisphere_grid()
         .into_par_iter()
-        .map(|(el, az)| (axis(el, az), fit(axis(el, az), 8)))
+        .map(|(el, az)| (hemisphere_axis(el, az), fit(hemisphere_axis(el, az), 8)))
         .collect();
     scored.sort_by(|a, b| a.1.trimmed_distance_m.total_cmp(&b.1.trimmed_distance_m));
     let mut seeds: Vec<Vector3<f64>> = Vec::new();

@@ -1182,6 +1182,12 @@ fn make_twins(s: &mut TrackState, m: &Model, tables: &GridTables, tw: &TwinConfi
     }
     let k = ((tw.share * n as f64).round() as usize).clamp(1, n / 2);
     for (j, turn) in m.twin_turns.iter().enumerate() {
+        // the turned column holds the parent's mass at `R * turn^-1` (it reads bin `b` at
+        // `b * turn`): the twin is the pose turned by the inverse
+        let inverse = crate::symmetry::CentredTurn {
+            rotation: turn.rotation.inverse(),
+            ..*turn
+        };
         let chosen = rand::seq::index::sample(rng, n, k).into_vec();
         let mut parents: Vec<u32> = chosen.iter().map(|&p| s.rot.column_of[p]).collect();
         parents.sort_unstable();
@@ -1202,12 +1208,6 @@ fn make_twins(s: &mut TrackState, m: &Model, tables: &GridTables, tw: &TwinConfi
             let r_ref = s.reference_from_hist.rotation
                 * crate::geometry::ray_rotation(&t_h)
                 * UnitQuaternion::from_matrix(&tables.matrix(tops[i]));
-            // the turned column holds the parent's mass at `R * turn^-1` (it reads bin `b` at
-            // `b * turn`): the twin is the pose turned by the inverse
-            let inverse = crate::symmetry::CentredTurn {
-                rotation: turn.rotation.inverse(),
-                ..*turn
-            };
             s.positions[p] += inverse.origin_shift(&r_ref);
             s.rot.column_of[p] = turned[i];
         }

@@ -678,17 +678,18 @@ pub fn append_turned_columns(
     state.values = vals;
     state.floors.extend(floors);
     // the new columns to mass 1 (the gathered values need not sum to the parent's)
-    let masses = state.column_masses(tables);
     let w = state.n_cols();
-    for i in nc..w {
-        let m = masses[i];
-        if m > 0.0 {
-            let inv = (1.0 / m) as f32;
-            for row in state.values.chunks_mut(w) {
-                row[i] *= inv;
-            }
-            state.floors[i] *= inv;
+    let inv: Vec<f32> = state.column_masses(tables)[nc..]
+        .iter()
+        .map(|m| if *m > 0.0 { (1.0 / m) as f32 } else { 1.0 })
+        .collect();
+    for row in state.values.chunks_mut(w) {
+        for (v, k) in row[nc..].iter_mut().zip(&inv) {
+            *v *= k;
         }
+    }
+    for (f, k) in state.floors[nc..].iter_mut().zip(&inv) {
+        *f *= k;
     }
     (nc as u32..w as u32).collect()
 }
