@@ -120,6 +120,13 @@ fn eval_writes_results_and_multi_view_beats_a_blind_robot_camera() {
             .as_ref()
             .is_some_and(|f| (0.0..=1.0).contains(&f.p_raw) && f.effective_sample_size > 0.0)
     }));
+    // and which of the grasp's tests the truth passes, which say whether it succeeds
+    assert!(
+        records
+            .decisions
+            .iter()
+            .all(|d| d.truth_tests.is_some_and(|t| t.success() == d.success))
+    );
     assert!(out_multi.join("plots/seq0.svg").is_file() && out_multi.join("plots/seq0.png").is_file());
     assert_eq!(multi.objects.len(), 1);
     let m = &multi.objects[0];

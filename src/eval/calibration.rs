@@ -31,6 +31,10 @@ pub struct DecisionOutcome {
     pub grasp: bool,
     /// The planned grasp succeeds on the true pose.
     pub success: bool,
+    /// Which of the grasp's tests pass on the true pose (the approach, the table, the
+    /// contact and the alignment): why a failing grasp fails. `None` in records of older runs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub truth_tests: Option<crate::grasp::PoseOutcome>,
     /// Distance from the robot camera (the reference camera in a rig without one) to the
     /// object's true position (m); `None` where the truth does not say.
     pub camera_distance_m: Option<f64>,
@@ -297,6 +301,7 @@ mod tests {
             p_success: p,
             grasp,
             success,
+            truth_tests: None,
             camera_distance_m: Some(d),
             features: None,
         }

@@ -572,6 +572,25 @@ pub struct SetReport {
     /// Moves between two draws on one tracker state, raw and calibrated.
     pub repeat_raw: JumpStats,
     pub repeat_calibrated: JumpStats,
+    /// The served `grasp` answers that fail on the truth, counted by the test each fails
+    /// (one answer may fail several), of those whose records say (`truth_tests`).
+    #[serde(default)]
+    pub failing_by_test: BTreeMap<String, usize>,
+}
+
+/// The `grasp` answers among `answers` that fail on the truth, counted by the test they fail.
+pub fn failing_by_test(answers: &[DecisionOutcome]) -> BTreeMap<String, usize> {
+    let mut by = BTreeMap::new();
+    for t in answers
+        .iter()
+        .filter(|d| d.grasp && !d.success)
+        .filter_map(|d| d.truth_tests)
+    {
+        for test in crate::grasp::FailureTest::ALL.into_iter().filter(|&k| t.failed(k)) {
+            *by.entry(format!("{test:?}").to_lowercase()).or_insert(0) += 1;
+        }
+    }
+    by
 }
 
 /// Scores `map` (with its rule and smoothing) on `records`.
@@ -594,6 +613,7 @@ pub fn report(map: &CalibrationMap, records: &DecisionRecords) -> Result<SetRepo
         jumps_served: successive_jumps(&served),
         repeat_raw,
         repeat_calibrated,
+        failing_by_test: failing_by_test(&served),
     })
 }
 
@@ -847,6 +867,13 @@ fn print_set(name: &str, r: &SetReport) {
         })
         .collect();
     println!("  served per object: {}", per_object.join("; "));
+    if !r.failing_by_test.is_empty() {
+        let by: Vec<String> = r.failing_by_test.iter().map(|(k, n)| format!("{k} {n}")).collect();
+        println!(
+            "  served grasps failing on the truth, by the test they fail: {}",
+            by.join(", ")
+        );
+    }
     let b = &r.before;
     println!(
         "  before (raw, Wilson lower >= 0.9): ECE {:.4}, Brier {:.4}, grasp rate {:.4}, false grasp rate {}, recall {}, first grasp in {} of {}, fails in {}",
@@ -954,6 +981,7 @@ mod tests {
             p_success: p_raw,
             grasp: false,
             success,
+            truth_tests: None,
             camera_distance_m: Some(distance_m),
             features: Some(DecisionFeatures {
                 p_raw,
@@ -1091,6 +1119,36 @@ mod tests {
             p_in(&answers),
             p_in(&in_sample_s5)
         );
+    }
+
+    #[test]
+    fn failing_grasps_are_counted_by_the_tests_they_fail() {
+        use crate::grasp::PoseOutcome;
+        let tests = |contact: bool, aligned: bool| PoseOutcome {
+            approach_clear: true,
+            table_clear: true,
+            contact,
+            aligned: contact && aligned,
+        };
+        let mut d = vec![
+            rec("a", 0, 0.99, false, 1.0),
+            rec("a", 1, 0.99, false, 1.0),
+            rec("a", 2, 0.99, false, 1.0),
+            rec("a", 3, 0.99, true, 1.0),
+            rec("a", 4, 0.5, false, 1.0),
+        ];
+        d[0].truth_tests = Some(tests(false, false));
+        d[1].truth_tests = Some(tests(true, false));
+        d[3].truth_tests = Some(tests(true, true));
+        d[4].truth_tests = Some(tests(false, false));
+        for x in &mut d[..4] {
+            x.grasp = true;
+        }
+        // the third failing grasp has no tests recorded, the fifth frame said no `grasp`
+        let by = failing_by_test(&d);
+        assert_eq!(by.get("contact"), Some(&1));
+        assert_eq!(by.get("alignment"), Some(&1));
+        assert_eq!(by.len(), 2, "{by:?}");
     }
 
     #[test]

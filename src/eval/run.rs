@@ -626,7 +626,7 @@ fn decide_once(
         (Some(_), None) => return Ok(None),
         (None, _) => None,
     };
-    let success = grasp::success_on_pose(
+    let truth_tests = grasp::evaluate_pose(
         object,
         &dc.gripper,
         &decision.reference_from_gripper,
@@ -641,7 +641,8 @@ fn decide_once(
         stamp_ns,
         p_success: decision.p_success,
         grasp: decision.decision == Verdict::Grasp,
-        success,
+        success: truth_tests.success(),
+        truth_tests: Some(truth_tests),
         camera_distance_m: camera_distance_m(seq, frame_id, &truth.reference_from_object),
         features: Some(features),
     }))
