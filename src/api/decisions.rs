@@ -41,7 +41,7 @@ pub struct DecisionRequest {
     /// The threshold of the rule in force, in (0, 1]: on the calibrated `p_success` (or its
     /// lower bound) when the service's calibration map fits its settings, else on the lower
     /// end of the raw rate's 95 % Wilson interval. Absent: the rule's own (the map's, e.g.
-    /// 0.94; 0.9 without a map). See the operation's description.
+    /// 0.92; 0.9 without a map). See the operation's description.
     pub threshold: Option<f64>,
 }
 
@@ -441,26 +441,26 @@ pub fn router() -> OpenApiRouter<AppState> {
 /// per answer; a planner asking once a second gets `w` = 0.86, its answers hardly smoothed).
 /// `p_success` is the map at `r`: the isotonic fit of the outcome on the true pose against the
 /// smoothed raw rate on generated sequences, linear between its blocks' (mean raw rate,
-/// observed success rate) points. The shipped map reads (0.8524, 0.9290), (0.8634, 0.9429),
-/// (0.8809, 0.9435), (0.9084, 0.9487), (0.9315, 0.9698), (0.9579, 0.9820): at r = 0.95,
-/// `p_success` = 0.9698 + (0.95 - 0.9315) / (0.9579 - 0.9315) * (0.9820 - 0.9698) = 0.9783.
+/// observed success rate) points. The shipped map reads (0.8526, 0.9252), (0.8799, 0.9430),
+/// (0.9085, 0.9507), (0.9273, 0.9593), (0.9382, 0.9612), (0.9583, 0.9825): at r = 0.95,
+/// `p_success` = 0.9612 + (0.95 - 0.9382) / (0.9583 - 0.9382) * (0.9825 - 0.9612) = 0.9737.
 /// The answer is `grasp` when `rule.quantity` reaches `rule.threshold` in `rule.run_length`
 /// successive answers (answers on one tracker step count once; `smoothing.run` counts them;
 /// `rule.value` is the quantity's value). The shipped rule is `calibrated_at_raw_lower >=
-/// 0.94` in 1 answer: the map read at the lower end of the smoothed `ci95_raw`, which the map
-/// lifts to 0.94 from 0.8611. With the samples' ESS at 60 (a near track's particles), r = 0.95
-/// has its Wilson lower end at 0.8630, where the map reads 0.9424: `grasp`; r = 0.94 has 0.8495
-/// (0.9257): `observe`. At ESS 300, r = 0.905 is enough: the fewer independent samples behind
-/// a rate, the more the rule asks of it. Of the fitting data's answers with a given
-/// `p_success`, about that share succeeded on the true pose; `ci95` is the smoothed raw
-/// interval through the map, widened by the map's own uncertainty (its blocks' Wilson
-/// intervals). The rule was chosen by its failures on the fitting approaches' out-of-fold
-/// answers (each quarter answered by a map fitted on the other three): at most 1 % of its
-/// `grasp` answers failing in at least 80 % of resamples of the approaches, at most one of their
-/// 224 first `grasp` answers failing, then the highest recall within 1.2 m. On the fitting data
-/// 0.73 % of its answers failed out of fold (1 % kept in 92 % of the resamples); on 128
-/// approaches it never saw (seeds 2500 and 2700), 0.54 % (13 of 2,367), and one first `grasp`
-/// of 69 failed.
+/// 0.92` in 2 answers: the map read at the lower end of the smoothed `ci95_raw`, which the map
+/// lifts to 0.92 from 0.8455. With the samples' ESS at 60 (a near track's particles), r = 0.94
+/// has its Wilson lower end at 0.8495, where the map reads 0.9229: `grasp` once two successive
+/// answers reach it; r = 0.93 has 0.8364 (0.9134): `observe`. At ESS 300, r = 0.887 is enough:
+/// the fewer independent samples behind a rate, the more the rule asks of it. Of the fitting
+/// data's answers with a given `p_success`, about that share succeeded on the true pose; `ci95`
+/// is the smoothed raw interval through the map, widened by the map's own uncertainty (its
+/// blocks' Wilson intervals). The rule was chosen by its failures on the fitting approaches'
+/// out-of-fold answers (each quarter answered by a map fitted on the other three): at most 1 %
+/// of its `grasp` answers failing in at least 80 % of resamples of the approaches, at most one
+/// of their 224 first `grasp` answers failing, then the highest recall within 1.2 m. On the
+/// fitting data 0.83 % of its answers failed out of fold (1 % kept in 85 % of the resamples,
+/// no first `grasp` failing); on 128 approaches it never saw (seeds 2500 and 2700), 0.44 %
+/// (11 of 2,507), and none of their 73 first `grasp` answers failed.
 ///
 /// **Stale or absent map (`calibration.state` = `stale` / `absent`)**: `p_success` is the raw
 /// rate itself, `ci95` its Wilson interval, nothing is smoothed, and the rule is the one before

@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 /// Version of the decision's own procedure (how candidates are generated, chosen and checked).
 /// It is part of the settings a calibration map is fitted for: bump it when a change moves the
 /// raw rate of the same samples, so that maps fitted before it are refused as stale.
-pub const DECISION_PROCEDURE_VERSION: u32 = 3;
+pub const DECISION_PROCEDURE_VERSION: u32 = 4;
 /// The chosen grasp is scored on the samples drawn towards the estimate by these shares
 /// (translation offsets, and rotations of the estimate's own mode along their geodesic): the
 /// tracked rotation spread is wider than the error where the grasps are decided, and the rate
@@ -48,6 +48,11 @@ const GROOVE_TOLERANCE_M: f32 = 0.0001;
 const CONTACT_BACK_OFF_M: f32 = 0.0005;
 /// Contacts are looked for up to this distance from the pad at its first touch.
 const CONTACT_PREDICTION_M: f32 = 0.01;
+/// A finger's first touch this far beyond the pad's edge (towards the palm) still counts as
+/// the pad's: the pad's rubber yields that much, and without it a can whose lid rim meets the
+/// finger 0.1 mm outside the pad fails in a 0.1-degree window of tilt while the same grasp
+/// succeeds on both sides of it (docs/decisions.md).
+const PAD_EDGE_TOLERANCE_M: f32 = 0.001;
 /// Two contact normals this close belong to one flat face.
 const SAME_FACE_DEG: f64 = 0.5;
 /// An axis of uncertainty is named as driving a failure from this dependence on.
@@ -372,7 +377,9 @@ impl GripperShapes {
             }
             // the first touch lies on the pad when the finger's witness is in the pad zone of
             // its inner face; otherwise the pad must touch no later than the finger
-            let pad_toi = if finger.witness1.z >= self.pad_zone_z && finger.normal1.x * -side > 0.99 {
+            let on_pad_face =
+                finger.witness1.z >= self.pad_zone_z - PAD_EDGE_TOLERANCE_M && finger.normal1.x * -side > 0.99;
+            let pad_toi = if on_pad_face {
                 finger.time_of_impact
             } else {
                 match cast(&self.pad_pose[k], &self.pad) {
