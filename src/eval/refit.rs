@@ -593,6 +593,62 @@ pub fn failing_by_test(answers: &[DecisionOutcome]) -> BTreeMap<String, usize> {
     by
 }
 
+/// Effective sample sizes at which [`rule_arithmetic`] says what raw rate the rule needs: a
+/// track of few particles (60, a near track's), the middle, and a spread one.
+pub const ARITHMETIC_ESS: [f64; 3] = [60.0, 110.0, 300.0];
+
+/// What the map's rule asks of an unchanged raw rate, for the README and the API docs (they
+/// quote it, and a refit moves it): the raw rate at which the map reaches the threshold, and
+/// the lowest steady raw rate that the rule admits at each of [`ARITHMETIC_ESS`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RuleArithmetic {
+    /// The lowest raw rate whose calibrated probability reaches the threshold (`None`: the map
+    /// never does; the threshold itself for a rule on the raw rate).
+    pub raw_at_threshold: Option<f64>,
+    /// (ESS, the lowest steady raw rate the rule admits at that ESS).
+    pub raw_needed_at_ess: Vec<(f64, Option<f64>)>,
+}
+
+/// The smallest `x` in [0, 1] with `f(x)` true, for `f` false below some point and true from
+/// it on (to 1e-6); `None` when `f(1)` is false.
+fn lowest_admitted(f: impl Fn(f64) -> bool) -> Option<f64> {
+    if !f(1.0) {
+        return None;
+    }
+    let (mut lo, mut hi) = (0.0, 1.0);
+    while hi - lo > 1e-6 {
+        let mid = 0.5 * (lo + hi);
+        if f(mid) { hi = mid } else { lo = mid }
+    }
+    Some(hi)
+}
+
+/// See [`RuleArithmetic`]; the pooled map (no spread stratum).
+pub fn rule_arithmetic(map: &CalibrationMap) -> RuleArithmetic {
+    let rule = map.rule;
+    let reaches = |raw: f64| map.apply(raw, None) >= rule.threshold;
+    let raw_at_threshold = match rule.quantity {
+        RuleQuantity::Raw | RuleQuantity::RawLower => Some(rule.threshold),
+        _ => lowest_admitted(reaches),
+    };
+    let raw_needed_at_ess = ARITHMETIC_ESS
+        .iter()
+        .map(|&ess| {
+            let admits = |r: f64| {
+                let ci = crate::grasp::wilson_interval(r, ess);
+                let pc = map.apply(r, None);
+                let cic = map.interval(ci, None);
+                rule.quantity_value((pc, cic), (r, ci), || map.apply(ci[0], None)) >= rule.threshold
+            };
+            (ess, lowest_admitted(admits))
+        })
+        .collect();
+    RuleArithmetic {
+        raw_at_threshold,
+        raw_needed_at_ess,
+    }
+}
+
 /// Scores `map` (with its rule and smoothing) on `records`.
 pub fn report(map: &CalibrationMap, records: &DecisionRecords) -> Result<SetReport, EvalError> {
     let calibration = Calibration::Fitted(Arc::new(map.clone()));
@@ -951,6 +1007,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         m.rule.threshold,
         m.rule.run_length
     );
+    let a = rule_arithmetic(m);
+    println!(
+        "rule arithmetic: the map reaches {} at a raw rate of {}; a steady raw rate is admitted from {}",
+        m.rule.threshold,
+        a.raw_at_threshold.map_or("never".to_string(), |r| format!("{r:.4}")),
+        a.raw_needed_at_ess
+            .iter()
+            .map(|(ess, r)| format!("{} at ESS {ess}", r.map_or("never".to_string(), |r| format!("{r:.4}"))))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
     if let Some(f) = &out.fit {
         print_set("fit", f);
     }
@@ -1052,6 +1119,52 @@ mod tests {
             })
             .expect("the rule 0.2 lower");
         assert!(lower.false_grasp_rate.unwrap_or(0.0) > fr);
+    }
+
+    #[test]
+    fn the_rule_arithmetic_names_the_rates_where_the_served_rule_starts_to_grasp() {
+        let records = approaches_set(8);
+        let mut map = fit_map(
+            &records,
+            0.5,
+            MIN_BLOCK_COUNT,
+            &[],
+            vec!["synthetic".into()],
+            "now".into(),
+        );
+        map.rule = GraspRule {
+            quantity: RuleQuantity::CalibratedAtRawLower,
+            threshold: map.apply(0.97, None),
+            run_length: 1,
+        };
+        let a = rule_arithmetic(&map);
+        let at = a.raw_at_threshold.expect("the map reaches its value at 0.97");
+        assert!(map.apply(at, None) >= map.rule.threshold && map.apply(at - 1e-3, None) < map.rule.threshold);
+        let calibration = Calibration::Fitted(Arc::new(map.clone()));
+        // a steady raw rate at the rate named is admitted by the served rule, 0.002 below it not
+        let served = |r: f64, ess: f64| {
+            let mut smoother = AnswerSmoother::new(map.smoothing_time_constant_s);
+            let ci = crate::grasp::wilson_interval(r, ess);
+            (0..5)
+                .map(|k| smoother.update(k * 200_000_000, (r, ci), None, &calibration, &map.rule))
+                .last()
+                .expect("answers")
+                .grasp
+        };
+        let needed: Vec<f64> = a
+            .raw_needed_at_ess
+            .iter()
+            .map(|&(ess, r)| {
+                let r = r.expect("admitted below 1");
+                assert!(served(r, ess) && !served(r - 2e-3, ess), "ESS {ess}: {r}");
+                r
+            })
+            .collect();
+        // the fewer independent samples, the higher the rate the rule needs, all above the map's
+        assert!(
+            needed.windows(2).all(|w| w[0] > w[1]) && needed[2] > at,
+            "{needed:?} {at}"
+        );
     }
 
     #[test]
