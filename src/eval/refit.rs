@@ -626,10 +626,9 @@ fn lowest_admitted(f: impl Fn(f64) -> bool) -> Option<f64> {
 /// See [`RuleArithmetic`]; the pooled map (no spread stratum).
 pub fn rule_arithmetic(map: &CalibrationMap) -> RuleArithmetic {
     let rule = map.rule;
-    let reaches = |raw: f64| map.apply(raw, None) >= rule.threshold;
     let raw_at_threshold = match rule.quantity {
         RuleQuantity::Raw | RuleQuantity::RawLower => Some(rule.threshold),
-        _ => lowest_admitted(reaches),
+        _ => lowest_admitted(|raw| map.apply(raw, None) >= rule.threshold),
     };
     let raw_needed_at_ess = ARITHMETIC_ESS
         .iter()

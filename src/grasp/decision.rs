@@ -49,9 +49,9 @@ const CONTACT_BACK_OFF_M: f32 = 0.0005;
 /// Contacts are looked for up to this distance from the pad at its first touch.
 const CONTACT_PREDICTION_M: f32 = 0.01;
 /// A finger's first touch this far beyond the pad's edge (towards the palm) still counts as
-/// the pad's: the pad's rubber yields that much, and without it a can whose lid rim meets the
-/// finger 0.1 mm outside the pad fails in a 0.1-degree window of tilt while the same grasp
-/// succeeds on both sides of it (docs/decisions.md).
+/// the pad's: a rim that close to the pad is held by it, and without the margin a can whose
+/// lid rim meets the finger 0.1 mm outside the pad fails in a 0.1-degree window of tilt while
+/// the same grasp succeeds on both sides of it (docs/decisions.md).
 const PAD_EDGE_TOLERANCE_M: f32 = 0.001;
 /// Two contact normals this close belong to one flat face.
 const SAME_FACE_DEG: f64 = 0.5;
@@ -285,7 +285,8 @@ struct GripperShapes {
     pad_pose: [PPose; 2],
     approach_m: f32,
     closing_travel_m: f32,
-    /// Lowest z of the pad in the finger's local frame.
+    /// Lowest z, in the finger's local frame, of a first touch that counts as the pad's: the
+    /// pad's lower edge less [`PAD_EDGE_TOLERANCE_M`].
     pad_zone_z: f32,
     cos_capture: f64,
 }
@@ -310,7 +311,7 @@ impl GripperShapes {
             ],
             pad_pose: [at(pad_p), at(pad_m)],
             approach_m: g.approach_distance_m as f32,
-            pad_zone_z: (g.finger_size_m[2] * 0.5 - g.pad.length_m) as f32,
+            pad_zone_z: (g.finger_size_m[2] * 0.5 - g.pad.length_m) as f32 - PAD_EDGE_TOLERANCE_M,
             closing_travel_m: (g.max_opening_m - g.min_opening_m) as f32,
             cos_capture: g.pad.capture_angle_deg.to_radians().cos(),
         }
@@ -377,9 +378,7 @@ impl GripperShapes {
             }
             // the first touch lies on the pad when the finger's witness is in the pad zone of
             // its inner face; otherwise the pad must touch no later than the finger
-            let on_pad_face =
-                finger.witness1.z >= self.pad_zone_z - PAD_EDGE_TOLERANCE_M && finger.normal1.x * -side > 0.99;
-            let pad_toi = if on_pad_face {
+            let pad_toi = if finger.witness1.z >= self.pad_zone_z && finger.normal1.x * -side > 0.99 {
                 finger.time_of_impact
             } else {
                 match cast(&self.pad_pose[k], &self.pad) {
