@@ -100,8 +100,8 @@ pub struct Args {
 /// The default tracker configuration with the fields of `overrides` (a JSON object, nested
 /// objects merged field by field) put over it. Unknown fields and wrong types are errors.
 pub fn tracker_config_with(overrides: &serde_json::Value) -> anyhow::Result<TrackerConfig> {
-    // `full` names the optional settings that the defaults leave out (`twins`): an override
-    // that names one starts from that setting's own defaults
+    // `full` names the optional settings in full (`twins`, which `null` switches off): an
+    // override that names one starts from that setting's own defaults
     fn merge(
         base: &mut serde_json::Value,
         full: &serde_json::Value,
@@ -299,7 +299,18 @@ mod tests {
         let tw = t.twins.expect("twins on");
         assert_eq!(tw.share, 0.1);
         assert_eq!(tw.min_shift_m, crate::tracker::TwinConfig::default().min_shift_m);
-        assert!(d.twins.is_none());
+        assert_eq!(d.twins, Some(crate::tracker::TwinConfig::default()));
+        let off = tracker_config_with(&serde_json::json!({"twins": null})).expect("twins off");
+        assert!(off.twins.is_none());
+        let back: TrackerConfig = serde_json::from_value(serde_json::to_value(&off).unwrap()).unwrap();
+        assert!(back.twins.is_none(), "twins switched off stay off through JSON");
+        let mut without = serde_json::to_value(&d).unwrap();
+        without.as_object_mut().unwrap().remove("twins");
+        let missing: TrackerConfig = serde_json::from_value(without).unwrap();
+        assert_eq!(
+            missing.twins, d.twins,
+            "settings that do not name twins keep the default"
+        );
         let unknown = tracker_config_with(&serde_json::json!({"twins": {"sharee": 0.1}}));
         assert!(unknown.unwrap_err().to_string().contains("twins.sharee"));
     }

@@ -132,8 +132,8 @@ pub struct TrackerConfig {
     #[serde(default = "default_turn_max_distance_rel")]
     pub turn_max_distance_rel: f64,
     /// Twins: each step a few particles jump to the pose an off-centre confusable turn makes
-    /// of theirs, rotation and position together. `None`: off.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// of theirs, rotation and position together. On by default; `null` switches them off.
+    #[serde(default = "default_twins")]
     pub twins: Option<TwinConfig>,
     pub seed: u64,
 }
@@ -151,8 +151,8 @@ const TWIN_MIXED_TURN_RAD: f64 = 10.0 * std::f64::consts::PI / 180.0;
 /// track's particles (at least one) per turn move to their turned pose: the position shifted
 /// by the turn's offset at the particle's top bin, the histogram turned. The views then weigh
 /// the twins as any particle, so a twin at the truth takes over within a few steps, and twins
-/// the views reject are resampled away. Off by default until the calibration map is refitted
-/// for it (`docs/decisions.md`, "Twins for the mug's turned body").
+/// the views reject are resampled away (`docs/decisions.md`, "Twins for the mug's turned
+/// body"). Only the mug among the YCB objects has such a turn.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TwinConfig {
     /// Share of a track's particles that jump per turn and step.
@@ -228,6 +228,10 @@ fn default_turn_share() -> f64 {
 
 fn default_turn_max_distance_rel() -> f64 {
     0.016
+}
+
+fn default_twins() -> Option<TwinConfig> {
+    Some(TwinConfig::default())
 }
 
 /// Recovery when the cameras disagree with a track (augmented Monte Carlo localisation's
@@ -351,7 +355,7 @@ impl Default for TrackerConfig {
             registration: RegistrationConfig::default(),
             turn_share: default_turn_share(),
             turn_max_distance_rel: default_turn_max_distance_rel(),
-            twins: None,
+            twins: default_twins(),
             seed: 1,
         }
     }
