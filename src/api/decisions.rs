@@ -441,27 +441,27 @@ pub fn router() -> OpenApiRouter<AppState> {
 /// per answer; a planner asking once a second gets `w` = 0.86, its answers hardly smoothed).
 /// `p_success` is the map at `r`: the isotonic fit of the outcome on the true pose against the
 /// smoothed raw rate on generated sequences, linear between its blocks' (mean raw rate,
-/// observed success rate) points. The shipped map reads (0.8526, 0.9410), (0.8801, 0.9412),
-/// (0.9091, 0.9430), (0.9274, 0.9574), (0.9382, 0.9611), (0.9583, 0.9825): at r = 0.95,
-/// `p_success` = 0.9611 + (0.95 - 0.9382) / (0.9583 - 0.9382) * (0.9825 - 0.9611) = 0.9737.
+/// observed success rate) points. The shipped map reads (0.7984, 0.9016), (0.8841, 0.9501),
+/// (0.9461, 0.9643), (0.9563, 0.9667), (0.9579, 0.9833), (0.9672, 0.9887): at r = 0.95,
+/// `p_success` = 0.9643 + (0.95 - 0.9461) / (0.9563 - 0.9461) * (0.9667 - 0.9643) = 0.9652.
 /// The answer is `grasp` when `rule.quantity` reaches `rule.threshold` in `rule.run_length`
 /// successive answers (answers on one tracker step count once; `smoothing.run` counts them;
 /// `rule.value` is the quantity's value). The shipped rule is `calibrated_at_raw_lower >=
-/// 0.93` in 2 answers: the map read at the lower end of the smoothed `ci95_raw`, which the map
-/// lifts to 0.93 from 0.8271. With the samples' ESS at 60 (a near track's particles), r = 0.93
-/// has its Wilson lower end at 0.8364, where the map reads 0.9340: `grasp` once two successive
-/// answers reach it; r = 0.92 has 0.8235 (0.9285): `observe`. At ESS 300, r = 0.870 is enough:
-/// the fewer independent samples behind a rate, the more the rule asks of it. Of the fitting
-/// data's answers with a given `p_success`, about that share succeeded on the true pose; `ci95`
-/// is the smoothed raw interval through the map, widened by the map's own uncertainty (its
-/// blocks' Wilson intervals). The rule was chosen by its failures on the fitting approaches'
-/// out-of-fold answers (each quarter answered by a map fitted on the other three): at most 1 %
-/// of its `grasp` answers failing in at least 80 % of resamples of the approaches, at most one
-/// of their 224 first `grasp` answers failing, then the highest recall within 1.2 m. On the
-/// fitting data 0.84 % of its answers failed out of fold (1 % kept in 82 % of the resamples,
-/// no first `grasp` failing); on 128 approaches it never saw (seeds 2500 and 2700), 0.70 %
-/// (19 of 2,705), and 1 of their 74 first `grasp` answers failed (a sugar box tracked 22
-/// degrees and 2.4 cm off).
+/// 0.93` in 1 answer: the map read at the lower end of the smoothed `ci95_raw`, which the map
+/// lifts to 0.93 from 0.8486. With the samples' ESS at 60 (a near track's particles), r = 0.94
+/// has its Wilson lower end at 0.8495, where the map reads 0.9305: `grasp`; r = 0.935 has
+/// 0.8429 (0.9268): `observe`. At ESS 300, r = 0.889 is enough: the fewer independent samples
+/// behind a rate, the more the rule asks of it. Of the fitting data's answers with a given
+/// `p_success`, about that share succeeded on the true pose; `ci95` is the smoothed raw
+/// interval through the map, widened by the map's own uncertainty (its blocks' Wilson
+/// intervals). The rule was chosen by its failures on the fitting approaches' out-of-fold
+/// answers (each quarter answered by a map fitted on the other three): at most 1 % of its
+/// `grasp` answers failing in at least 80 % of resamples of the approaches, at most one of
+/// their 224 first `grasp` answers failing, then the highest recall within 1.2 m. On the
+/// fitting data 0.75 % of its answers failed out of fold (1 % kept in 88 % of the resamples,
+/// 1 first `grasp` failing); on 64 approaches it never saw (seed 2500), 0.39 % (6 of 1,551),
+/// and 1 of their 40 first `grasp` answers failed (a sugar box tracked 20 degrees and 2 cm
+/// off).
 ///
 /// **Stale or absent map (`calibration.state` = `stale` / `absent`)**: `p_success` is the raw
 /// rate itself, `ci95` its Wilson interval, nothing is smoothed, and the rule is the one before

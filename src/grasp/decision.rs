@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 /// Version of the decision's own procedure (how candidates are generated, chosen and checked).
 /// It is part of the settings a calibration map is fitted for: bump it when a change moves the
 /// raw rate of the same samples, so that maps fitted before it are refused as stale.
-pub const DECISION_PROCEDURE_VERSION: u32 = 4;
+pub const DECISION_PROCEDURE_VERSION: u32 = 5;
 /// The chosen grasp is scored on the samples drawn towards the estimate by these shares
 /// (translation offsets, and rotations of the estimate's own mode along their geodesic): the
 /// tracked rotation spread is wider than the error where the grasps are decided, and the rate
@@ -53,8 +53,12 @@ const CONTACT_PREDICTION_M: f32 = 0.01;
 /// lid rim meets the finger 0.1 mm outside the pad fails in a 0.1-degree window of tilt while
 /// the same grasp succeeds on both sides of it (docs/decisions.md).
 const PAD_EDGE_TOLERANCE_M: f32 = 0.001;
-/// Two contact normals this close belong to one flat face.
-const SAME_FACE_DEG: f64 = 0.5;
+/// Two contact normals this close belong to one face that the pad squares. The scans' facets
+/// on a flat face differ by a few degrees (adjacent facets of the cracker box: median 3.8, of
+/// the sugar box 2.1), and a pad that gives half a millimetre takes a face whose normal turns
+/// by up to about 6 degrees across the groove's 9 mm half-width (2 x 0.5 / 9 rad); at 0.5
+/// degrees the test asked the two contacts to lie on one facet (`docs/decisions.md`).
+const SAME_FACE_DEG: f64 = 5.0;
 /// An axis of uncertainty is named as driving a failure from this dependence on.
 pub const DRIVER_MIN_DEPENDENCE: f64 = 0.1;
 /// Equal-count bins of the offsets for the dependence measure.
@@ -1115,13 +1119,14 @@ mod tests {
     }
 
     /// The answer's raw rate is the chosen grasp's on the drawn samples: with rotation noise
-    /// the grasp fails on, it is above the rate on the samples as drawn.
+    /// the grasp fails on (0.25 rad; at 0.15 the prism's faces hold under the same-face
+    /// tolerance), it is above the rate on the samples as drawn.
     #[test]
     fn the_chosen_grasp_is_scored_on_the_samples_drawn_towards_the_estimate() {
         let object = GraspObject::new(&crate::mesh::builtin_cylinder(0.05, 0.14, 48, [[1, 2, 3], [4, 5, 6]])).unwrap();
         let gripper = Gripper::default_parallel_jaw();
         let estimate = Pose::translation(0.6, 0.1, 0.07);
-        let samples = PoseSamples::gaussian(&estimate, [0.002; 3], [0.15; 3], 400, 11);
+        let samples = PoseSamples::gaussian(&estimate, [0.002; 3], [0.25; 3], 400, 11);
         let query = DecisionQuery {
             n_samples: 0,
             ..DecisionQuery::default()
