@@ -526,59 +526,22 @@ fn a_run_rule_grasps_only_through_the_tracks_smoother() {
     assert_eq!(second.p_success_raw, one.p_success_raw);
 }
 
-#[test]
-fn a_can_grasped_with_its_rim_at_the_pads_edge_keeps_the_grasp_when_tilted_a_little() {
-    // Top grasps of the upright can 20 and 21 mm deep put the lid's rim at the pads' edge.
-    // Tilted about its own origin in steps of 0.1 degree up to 2 degrees about the gripper's
-    // closing (x) and pad (y) axes, the grasp must hold throughout: a rim meeting the finger a
-    // fraction of a millimetre beyond the pad is held by the pad. Without the margin at the
-    // pad's edge the contact test failed these grasps at -1.8 to -1.5 degrees about x and
-    // -0.2 about y (20 mm), and -1.3 to -1.2 about y (21 mm), with success on both sides.
+/// The upright can under top grasps `depths_mm` deep, tilted about its own origin in steps of
+/// 0.1 degree up to `max_steps` of them about the gripper's closing (x) and pad (y) axes: the
+/// tilts at which the grasp fails on the can.
+fn can_tilts_failing(depths_mm: &[u32], max_steps: i32) -> Vec<String> {
     let gripper = Gripper::default_parallel_jaw();
     let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
     let est = standing(&can);
     let samples = PoseSamples::gaussian(&est, [0.0; 3], [0.0; 3], 100, 1);
     let mut failing = Vec::new();
-    for depth_m in [0.020, 0.021] {
-        let d = decide(&can, &gripper, &est, &samples, &query(Some(top_grasp(&can, depth_m)))).unwrap();
-        assert_eq!(d.p_success_raw, 1.0, "{}", d.grasp.label);
-        for (name, axis_in_gripper) in [("x", Vector3::x()), ("y", Vector3::y())] {
-            let axis = nalgebra::Unit::new_normalize(d.reference_from_gripper.rotation * axis_in_gripper);
-            for step in -20..=20 {
-                let tilt_deg = f64::from(step) * 0.1;
-                let r = UnitQuaternion::from_axis_angle(&axis, tilt_deg.to_radians());
-                let tilted = rotate_about_origin(&est, &r, &Vector3::zeros());
-                if !success_on_pose(&can, &gripper, &d.reference_from_gripper, &tilted, Some(&table())).unwrap() {
-                    failing.push(format!(
-                        "{:.0} mm, {tilt_deg:+.1} deg about gripper {name}",
-                        depth_m * 1e3
-                    ));
-                }
-            }
-        }
-    }
-    assert!(failing.is_empty(), "{failing:?}");
-}
-
-#[test]
-fn a_can_grasped_on_its_scanned_facets_keeps_the_grasp_when_tilted_a_little() {
-    // Top grasps of the upright can 10-30 mm deep, tilted about its own origin in steps of 0.1
-    // degree up to 1.5 degrees about the gripper's closing (x) and pad (y) axes, must hold
-    // throughout: where the pad meets the can off its groove, the scan's facets under the pad
-    // and the groove differ by a few degrees on what is one face of the real can, and the pad
-    // squares such a face.
-    let gripper = Gripper::default_parallel_jaw();
-    let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
-    let est = standing(&can);
-    let samples = PoseSamples::gaussian(&est, [0.0; 3], [0.0; 3], 100, 1);
-    let mut failing = Vec::new();
-    for depth_mm in 10..=30 {
+    for &depth_mm in depths_mm {
         let depth_m = f64::from(depth_mm) * 1e-3;
         let d = decide(&can, &gripper, &est, &samples, &query(Some(top_grasp(&can, depth_m)))).unwrap();
         assert_eq!(d.p_success_raw, 1.0, "{}", d.grasp.label);
         for (name, axis_in_gripper) in [("x", Vector3::x()), ("y", Vector3::y())] {
             let axis = nalgebra::Unit::new_normalize(d.reference_from_gripper.rotation * axis_in_gripper);
-            for step in -15..=15 {
+            for step in -max_steps..=max_steps {
                 let tilt_deg = f64::from(step) * 0.1;
                 let r = UnitQuaternion::from_axis_angle(&axis, tilt_deg.to_radians());
                 let tilted = rotate_about_origin(&est, &r, &Vector3::zeros());
@@ -588,5 +551,28 @@ fn a_can_grasped_on_its_scanned_facets_keeps_the_grasp_when_tilted_a_little() {
             }
         }
     }
+    failing
+}
+
+#[test]
+fn a_can_grasped_with_its_rim_at_the_pads_edge_keeps_the_grasp_when_tilted_a_little() {
+    // Top grasps of the upright can 20 and 21 mm deep put the lid's rim at the pads' edge.
+    // Tilted up to 2 degrees, the grasp must hold throughout: a rim meeting the finger a
+    // fraction of a millimetre beyond the pad is held by the pad. Without the margin at the
+    // pad's edge the contact test failed these grasps at -1.8 to -1.5 degrees about x and
+    // -0.2 about y (20 mm), and -1.3 to -1.2 about y (21 mm), with success on both sides.
+    let failing = can_tilts_failing(&[20, 21], 20);
+    assert!(failing.is_empty(), "{failing:?}");
+}
+
+#[test]
+fn a_can_grasped_on_its_scanned_facets_keeps_the_grasp_when_tilted_a_little() {
+    // Top grasps of the upright can 10-30 mm deep, tilted up to 1.5 degrees, must hold
+    // throughout: where the pad meets the can off its groove, the scan's facets under the pad
+    // and the groove differ by a few degrees on what is one face of the real can, and the pad
+    // squares such a face. With one face asked to lie within 0.5 degrees, the 11 mm grasp
+    // failed at -1.1 degrees about y.
+    let depths_mm: Vec<u32> = (10..=30).collect();
+    let failing = can_tilts_failing(&depths_mm, 15);
     assert!(failing.is_empty(), "{failing:?}");
 }
