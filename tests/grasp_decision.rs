@@ -531,13 +531,13 @@ fn a_run_rule_grasps_only_through_the_tracks_smoother() {
 /// tilts at which the grasp fails on the can.
 fn can_tilts_failing(depths_mm: &[u32], max_steps: i32) -> Vec<String> {
     let gripper = Gripper::default_parallel_jaw();
-    let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
+    let can = GraspObject::new(&ycb("002_master_chef_can")).expect("the can's mesh");
     let est = standing(&can);
     let samples = PoseSamples::gaussian(&est, [0.0; 3], [0.0; 3], 100, 1);
     let mut failing = Vec::new();
     for &depth_mm in depths_mm {
         let depth_m = f64::from(depth_mm) * 1e-3;
-        let d = decide(&can, &gripper, &est, &samples, &query(Some(top_grasp(&can, depth_m)))).unwrap();
+        let d = decide(&can, &gripper, &est, &samples, &query(Some(top_grasp(&can, depth_m)))).expect("decision");
         assert_eq!(d.p_success_raw, 1.0, "{}", d.grasp.label);
         for (name, axis_in_gripper) in [("x", Vector3::x()), ("y", Vector3::y())] {
             let axis = nalgebra::Unit::new_normalize(d.reference_from_gripper.rotation * axis_in_gripper);
@@ -545,7 +545,8 @@ fn can_tilts_failing(depths_mm: &[u32], max_steps: i32) -> Vec<String> {
                 let tilt_deg = f64::from(step) * 0.1;
                 let r = UnitQuaternion::from_axis_angle(&axis, tilt_deg.to_radians());
                 let tilted = rotate_about_origin(&est, &r, &Vector3::zeros());
-                if !success_on_pose(&can, &gripper, &d.reference_from_gripper, &tilted, Some(&table())).unwrap() {
+                if !success_on_pose(&can, &gripper, &d.reference_from_gripper, &tilted, Some(&table())).expect("tested")
+                {
                     failing.push(format!("{depth_mm} mm, {tilt_deg:+.1} deg about gripper {name}"));
                 }
             }
