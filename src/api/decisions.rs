@@ -459,9 +459,9 @@ pub fn router() -> OpenApiRouter<AppState> {
 /// `grasp` answers failing in at least 80 % of resamples of the approaches, at most one of
 /// their 224 first `grasp` answers failing, then the highest recall within 1.2 m. On the
 /// fitting data 0.75 % of its answers failed out of fold (1 % kept in 88 % of the resamples,
-/// 1 first `grasp` failing); on 64 approaches it never saw (seed 2500), 0.39 % (6 of 1,551),
-/// and 1 of their 40 first `grasp` answers failed (a sugar box tracked 20 degrees and 2 cm
-/// off).
+/// 1 first `grasp` failing); on 128 approaches it never saw (seeds 2500 and 2700), 0.64 % (20
+/// of 3,110), and 2 of their 79 first `grasp` answers failed (one a sugar box tracked 20
+/// degrees and 2 cm off).
 ///
 /// **Stale or absent map (`calibration.state` = `stale` / `absent`)**: `p_success` is the raw
 /// rate itself, `ci95` its Wilson interval, nothing is smoothed, and the rule is the one before
