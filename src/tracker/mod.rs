@@ -15,6 +15,7 @@
 //!   [`observation::fuse`], the fused measurement update of the dense histograms.
 //! - [`motion`]: Brownian object motion and the odometry motion model of the robot camera.
 //! - [`estimate`]: mean pose, components, rotation modes, covariance, samples.
+//! - [`support`]: the prior of an object resting on a table on a stable face of its hull.
 //! - [`filter`]: the [`Tracker`] itself.
 //!
 //! # Where the state lives
@@ -58,6 +59,7 @@ pub mod motion;
 pub mod observation;
 pub mod register;
 pub mod sparse;
+pub mod support;
 pub mod verify;
 
 use crate::geometry::Pose;
