@@ -100,8 +100,8 @@ pub struct Args {
 /// The default tracker configuration with the fields of `overrides` (a JSON object, nested
 /// objects merged field by field) put over it. Unknown fields and wrong types are errors.
 pub fn tracker_config_with(overrides: &serde_json::Value) -> anyhow::Result<TrackerConfig> {
-    // `full` lists the settings an override may name (the defaults'; `twins: null` switches
-    // twins off)
+    // `full` lists the settings an override may name (the defaults', and those off by default
+    // at the values they take when named; `twins: null` switches twins off)
     fn merge(
         base: &mut serde_json::Value,
         full: &serde_json::Value,
@@ -130,7 +130,8 @@ pub fn tracker_config_with(overrides: &serde_json::Value) -> anyhow::Result<Trac
         anyhow::bail!("tracker config: expected a JSON object");
     }
     let mut base = serde_json::to_value(TrackerConfig::default())?;
-    let full = base.clone();
+    let mut full = base.clone();
+    full["support"] = serde_json::to_value(crate::tracker::support::SupportConfig::default())?;
     merge(&mut base, &full, overrides, "")?;
     serde_json::from_value(base).map_err(|e| anyhow::anyhow!("tracker config: {e}"))
 }

@@ -359,6 +359,7 @@ pub fn evaluate_sequence(
     for (n, m) in &models {
         tracker.add_object_model(n, m.mesh.clone(), m.codebook.clone());
     }
+    tracker.set_support_normal(seq.rig.support_plane.map(|p| nalgebra::Vector3::from(p.normal)));
 
     let table_row = |object: &str| seq.rig.target.as_deref().is_none_or(|t| t == object);
     let mut traces: BTreeMap<(String, usize), ObjectTrace> = BTreeMap::new();

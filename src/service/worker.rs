@@ -488,6 +488,10 @@ pub(super) fn step(state: &ServiceState, set: &FusionSet) {
         engine.odometry_stamp_ns = Some(odometry_stamp);
         engine.base_from_reference = Some(o.base_from_camera);
     }
+    // the scene's table top may change between steps (PUT /scene/support_plane)
+    engine
+        .tracker
+        .set_support_normal(state.support_plane().map(|p| nalgebra::Vector3::from(p.normal)));
     let t0 = Instant::now();
     match engine.tracker.step(&frames, odometry.as_ref()) {
         Ok(report) => {

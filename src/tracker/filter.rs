@@ -8,9 +8,9 @@
 //!    track the filter declared lost); a tracked object ignores them.
 //! 3. Update: per view, the evidence of [`observation`](super::observation) is pulled into the
 //!    reference bins through one bin map per view and step and summed in log space (Eq. 6);
-//!    the posterior is the prior (floored at `prior_floor_rel` times the bin's volume) times the
-//!    fused likelihood; the particle weight is multiplied by the marginal (Eq. 7) and the depth
-//!    term.
+//!    the posterior is the prior (floored at `prior_floor_rel` times the bin's volume, times the
+//!    support prior's factor when [`TrackerConfig::support`] is on) times the fused likelihood;
+//!    the particle weight is multiplied by the marginal (Eq. 7) and the depth term.
 //! 4. Component weights are floored (`min_component_weight`) so that Eq. 2's mixture stays a
 //!    mixture; estimates (with the depth registration's positions when it is on, see
 //!    [`RegistrationConfig`]); resampling *within* each source camera's component
@@ -135,6 +135,11 @@ pub struct TrackerConfig {
     /// of theirs, rotation and position together. On by default; `null` switches them off.
     #[serde(default = "default_twins")]
     pub twins: Option<TwinConfig>,
+    /// The support prior: the object rests on a stable face of its hull or a face of its
+    /// bounding box, its turn about the vertical free ([`crate::tracker::support`]); applied
+    /// when the scene's support surface is known ([`Tracker::set_support_normal`]). `None`: off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub support: Option<crate::tracker::support::SupportConfig>,
     pub seed: u64,
 }
 
@@ -356,6 +361,7 @@ impl Default for TrackerConfig {
             turn_share: default_turn_share(),
             turn_max_distance_rel: default_turn_max_distance_rel(),
             twins: default_twins(),
+            support: None,
             seed: 1,
         }
     }
@@ -388,6 +394,8 @@ struct Model {
     twin_turns: Vec<crate::symmetry::CentredTurn>,
     /// Every bin's partner under each twin turn.
     twin_partners: Vec<u32>,
+    /// The support prior ([`TrackerConfig::support`]); `None` when off or for a flat mesh.
+    support: Option<crate::tracker::support::SupportPrior>,
 }
 
 /// State of one track.
@@ -514,6 +522,8 @@ pub struct Tracker {
     rng: rand_chacha::ChaCha8Rng,
     world_from_reference: Pose,
     last_odometry: Option<RobotOdometry>,
+    /// The normal of the surface objects rest on (world frame, unit), for the support prior.
+    support_normal_world: Option<Vector3<f64>>,
     /// Reusable similarity buffers, one per view of a step.
     sims: Vec<Vec<f32>>,
     blur_work: BlurWork,
@@ -541,6 +551,7 @@ impl Tracker {
             rng: rand_chacha::ChaCha8Rng::seed_from_u64(seed),
             world_from_reference,
             last_odometry: None,
+            support_normal_world: None,
             sims: Vec::new(),
             blur_work: BlurWork::default(),
             stamp_ns: 0,
@@ -573,6 +584,10 @@ impl Tracker {
             .map(|t| t.rotation.to_rotation_matrix().into_inner())
             .collect();
         let twin_partners = crate::tracker::sparse::turn_partners(&tables, &twin_matrices);
+        let support = self.config.support.and_then(|cfg| {
+            crate::tracker::support::RestingFaces::of_mesh(&mesh, cfg.box_faces)
+                .map(|faces| crate::tracker::support::SupportPrior::new(&faces, &cfg))
+        });
         if let Some(mi) = self.models.iter().position(|m| m.name == name) {
             // a better codebook for a known model: its tracks move to the new grid through
             // their compact snapshots (see `snapshot`), keeping particles and marginals
@@ -586,6 +601,7 @@ impl Tracker {
             m.turns = turns;
             m.twin_turns = twin_turns;
             m.twin_partners = twin_partners;
+            m.support = support;
             m.mesh = mesh;
             m.codebook = codebook;
             m.tables = tables;
@@ -603,6 +619,7 @@ impl Tracker {
             turn_partners,
             twin_turns,
             twin_partners,
+            support,
         });
     }
 
@@ -641,6 +658,27 @@ impl Tracker {
 
     pub fn world_from_reference(&self) -> Pose {
         self.world_from_reference
+    }
+
+    /// The normal (world frame) of the surface the objects rest on, the table top of the
+    /// scene's support plane: the support prior ([`TrackerConfig::support`]) needs it and is
+    /// not applied without it. A zero or non-finite normal counts as none.
+    pub fn set_support_normal(&mut self, normal_world: Option<Vector3<f64>>) {
+        self.support_normal_world = normal_world
+            .filter(|n| n.iter().all(|v| v.is_finite()))
+            .and_then(|n| n.try_normalize(1e-12));
+    }
+
+    /// The support surface's down direction (minus its normal) in the reference frame: known
+    /// when the reference camera is stationary or its odometry has come.
+    fn down_in_reference(&self) -> Option<Vector3<f64>> {
+        let down_world = -self.support_normal_world?;
+        match (self.cameras.get(&self.reference)?, &self.last_odometry) {
+            (CameraMount::Stationary { .. }, _) | (CameraMount::Robot { .. }, Some(_)) => {
+                Some(self.world_from_reference.rotation.inverse() * down_world)
+            }
+            (CameraMount::Robot { .. }, None) => None,
+        }
     }
 
     pub fn model_mesh(&self, name: &str) -> Option<&Mesh> {

@@ -492,8 +492,10 @@ fn prior_row(state: &RotationState, tables: &GridTables, bin: u32, slot: u32, fl
 
 /// The measurement update on the matched set (Eq. 6 and the marginal of Eq. 7): for row `i`
 /// (bin `bins[i]`, prior slot `slots[i]` in `state.active` or `u32::MAX`) and particle `p`,
-/// `post = max(prior, floor_rel * volume) * exp(f - fmax[p])` with `f` the views' fused
-/// log-likelihood. Returns the posteriors (`post[i * n + p]`) and their sums per particle.
+/// `post = max(prior, floor_rel * volume) * support[i] * exp(f - fmax[p])` with `f` the views'
+/// fused log-likelihood and `support` the support prior's factors (`None`: 1). Returns the
+/// posteriors (`post[i * n + p]`) and their sums per particle.
+#[allow(clippy::too_many_arguments)]
 pub fn fused_update(
     bins: &[u32],
     slots: &[u32],
@@ -502,6 +504,7 @@ pub fn fused_update(
     tables: &GridTables,
     floor_rel: f32,
     fmax: &[f32],
+    support: Option<&[f32]>,
 ) -> (Vec<f32>, Vec<f64>) {
     let n = fmax.len();
     let mut post = par_zeroed(bins.len() * n);
@@ -523,6 +526,9 @@ pub fn fused_update(
                         let i = c * CHUNK + r;
                         fused_row(views, i, n, &mut f);
                         prior_row(state, tables, bins[i], slots[i], floor_rel, &mut prior);
+                        if let Some(k) = support.map(|s| s[i]) {
+                            prior.iter_mut().for_each(|h| *h *= k);
+                        }
                         for ((((o, h), f), m), a) in orow.iter_mut().zip(&prior).zip(&f).zip(fmax).zip(acc.iter_mut()) {
                             let v = h * fast_exp(f - m);
                             *o = v;

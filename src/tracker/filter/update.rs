@@ -114,6 +114,8 @@ fn merge(a: &[u32], b: &[u32], slice: (usize, usize), nb: usize) -> (Vec<u32>, V
 /// from the tracker's one random stream and so follows in track order.
 struct TrackUpdate<'a> {
     config: &'a super::TrackerConfig,
+    /// The world's down direction in the reference frame (for the support prior).
+    down_reference: Option<Vector3<f64>>,
     models: &'a [super::Model],
     camera_names: &'a [String],
     stamp_ns: i64,
@@ -199,6 +201,21 @@ impl TrackUpdate<'_> {
             (start, len)
         };
         let (mut bins, mut slots, lattice_rows) = merge(&self.state.rot.active, &lattice.points, slice, nb);
+        // the support prior's factor of every matched bin, for the track's ray in `H`
+        let support = self.models[mi]
+            .support
+            .as_ref()
+            .zip(self.down_reference)
+            .map(|(prior, down_ref)| {
+                let down_hist = reference_from_hist.rotation.inverse() * down_ref;
+                let ray = crate::geometry::ray_rotation(&mean_hist)
+                    .to_rotation_matrix()
+                    .into_inner();
+                (prior, ray, down_hist)
+            });
+        let mut support_factors: Option<Vec<f32>> = support
+            .as_ref()
+            .map(|(prior, ray, down)| prior.factors(&tables, &bins, ray, down));
         // bin maps: a cached map of the grid where the camera's rotation held still
         for e in &mut encoded {
             e.dense_map = self.cached_map(&e.camera, &e.q, matching.dense, &tables, &bins);
@@ -265,6 +282,7 @@ impl TrackUpdate<'_> {
                     &tables,
                     n,
                     &matching,
+                    support_factors.as_deref(),
                 )
             };
             // the similarities go back to their views (in the same order as the evidence)
@@ -280,6 +298,9 @@ impl TrackUpdate<'_> {
             if !refine.is_empty() {
                 let t0 = Instant::now();
                 let first = bins.len();
+                if let (Some(f), Some((prior, ray, down))) = (support_factors.as_mut(), support.as_ref()) {
+                    f.extend(prior.factors(&tables, &refine, ray, down));
+                }
                 bins.extend_from_slice(&refine);
                 slots.extend(std::iter::repeat_n(u32::MAX, refine.len()));
                 for (k, e) in encoded.iter().enumerate() {
@@ -348,12 +369,23 @@ impl TrackUpdate<'_> {
             };
             let floor_rel = self.config.prior_floor_rel as f32;
             let s = &self.state;
-            let (mut post, sums) = fused_update(&bins, &slots, &refs, &s.rot, &tables, floor_rel, &fmax);
+            let sf = support_factors.as_deref();
+            let (mut post, sums) = fused_update(&bins, &slots, &refs, &s.rot, &tables, floor_rel, &fmax, sf);
             // the bins left out: each at its lattice cell's likelihood, on the prior's floor
             let unmatched = if matching.dense {
                 (vec![0.0; n], 0.0)
             } else {
-                unmatched_mass(&lattice, &refs, &lattice_rows, &bins, &s.rot, &tables, floor_rel, &fmax)
+                unmatched_mass(
+                    &lattice,
+                    &refs,
+                    &lattice_rows,
+                    &bins,
+                    &s.rot,
+                    &tables,
+                    floor_rel,
+                    &fmax,
+                    sf,
+                )
             };
             let v_unmatched = unmatched.1;
             let unmatched = unmatched.0;
@@ -852,6 +884,7 @@ impl Tracker {
     /// alone; more at once would hold more tracks' matching buffers for no more speed), then in
     /// track order their resampling.
     pub(super) fn update_tracks(&mut self, views: &[(&CameraFrame, Pose, usize)], report: &mut StepReport) {
+        let down_reference = self.down_in_reference();
         let order: Vec<usize> = (0..self.states.len()).filter(|&ti| self.states[ti].n() > 0).collect();
         let pool = std::mem::take(&mut self.sims);
         let jobs: Vec<TrackUpdate> = self
@@ -861,6 +894,7 @@ impl Tracker {
             .filter(|(s, _)| s.n() > 0)
             .map(|(state, track)| TrackUpdate {
                 config: &self.config,
+                down_reference,
                 models: &self.models,
                 camera_names: &self.camera_names,
                 stamp_ns: self.stamp_ns,
@@ -941,6 +975,7 @@ impl Tracker {
     pub(super) fn refresh_estimate(&mut self, ti: usize) {
         TrackUpdate {
             config: &self.config,
+            down_reference: None,
             models: &self.models,
             camera_names: &self.camera_names,
             stamp_ns: self.stamp_ns,
@@ -1074,7 +1109,8 @@ fn sort_active(rot: &mut RotationState) {
 }
 
 /// Per particle and lattice cell, the log posterior density (up to a constant) at the cell's
-/// lattice point: `ln(prior / volume) + f`.
+/// lattice point: `ln(prior / volume) + f`, plus the log of the cell's support factor
+/// (`support`, one per matched bin) when the support prior is on.
 #[allow(clippy::too_many_arguments)]
 fn refine_bins(
     lattice: &Lattice,
@@ -1086,6 +1122,7 @@ fn refine_bins(
     tables: &crate::tracker::bins::GridTables,
     n: usize,
     matching: &super::MatchingConfig,
+    support: Option<&[f32]>,
 ) -> Vec<u32> {
     let nc = rot.n_cols();
     // cells whose every fine bin is matched already need nothing
@@ -1127,6 +1164,7 @@ fn refine_bins(
                     ln_prior + f[p]
                 })
                 .fold(f32::NEG_INFINITY, f32::max);
+            let best = best + support.map_or(0.0, |s| s[i].max(1e-30).ln());
             (best, c)
         })
         .collect();
@@ -1168,6 +1206,7 @@ fn unmatched_mass(
     tables: &crate::tracker::bins::GridTables,
     floor_rel: f32,
     fmax: &[f32],
+    support: Option<&[f32]>,
 ) -> (Vec<f64>, f64) {
     let n = fmax.len();
     let mut left = lattice.cell_volume.clone();
@@ -1193,8 +1232,9 @@ fn unmatched_mass(
                     continue;
                 }
                 fused_row(views, *row as usize, n, &mut f);
+                let k = support.map_or(1.0, |s| f64::from(s[*row as usize]));
                 for p in 0..n {
-                    acc[p] += (lvl[p] as f64) * left[c] * crate::tracker::bins::fast_exp(f[p] - fmax[p]) as f64;
+                    acc[p] += (lvl[p] as f64) * left[c] * k * crate::tracker::bins::fast_exp(f[p] - fmax[p]) as f64;
                 }
             }
             acc
