@@ -1,7 +1,8 @@
 //! The tracker step's kernels alone, at the paper's size (110 particles, the full 37 x 72 x 72
 //! grid), each beside its plain reference: the blur, the fused update of three views, and the
 //! matching of 110 codes with each code's best bin taken while each chunk is in cache (against
-//! the GEMM in chunks followed by a separate max pass).
+//! the GEMM in chunks followed by a separate max pass); and the support prior's factors of a
+//! step's matched bins.
 //!
 //! Run: `cargo bench --bench kernels -- --noplot`. Random data: no codebook or renderer needed.
 
@@ -11,6 +12,7 @@ use pregrasp::geometry::RotationGrid;
 use pregrasp::tracker::bins::{GridTables, blur, blur_reference, gaussian_kernel, match_best};
 use pregrasp::tracker::observation::fuse::{FusedView, fuse_update};
 use pregrasp::tracker::observation::{ViewEvidence, add_loglik};
+use pregrasp::tracker::support::{RestingFaces, SupportConfig, SupportPrior};
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use std::hint::black_box;
@@ -139,6 +141,20 @@ fn kernels(c: &mut Criterion) {
                 );
             black_box(mx)
         })
+    });
+
+    // the support prior's factors: 30,000 matched bins (a step's matched set is 7,000-50,000
+    // on the full grid) of a cylinder whose hull rests on 48 side faces, its ends and its box
+    let cylinder = pregrasp::mesh::builtin_cylinder(0.05, 0.14, 48, [[200, 0, 0], [0, 0, 200]]);
+    let faces = RestingFaces::of_mesh(&cylinder, true).expect("cylinder");
+    let prior = SupportPrior::new(&faces, &SupportConfig::default());
+    let bins: Vec<u32> = (0..30_000).map(|_| rng.random_range(0..nb as u32)).collect();
+    let ray = UnitQuaternion::from_euler_angles(0.2, -0.3, 0.1)
+        .to_rotation_matrix()
+        .into_inner();
+    let down = nalgebra::Vector3::new(0.0, 0.8, 0.6);
+    g.bench_function("support_factors_30000_bins_cylinder", |b| {
+        b.iter(|| black_box(prior.factors(&tables, &bins, &ray, &down)))
     });
     g.finish();
 }
