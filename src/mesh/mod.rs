@@ -188,12 +188,19 @@ impl Mesh {
     /// The mesh as parry3d's triangle mesh (for distances to its surface); `None` when parry3d
     /// rejects it.
     pub fn to_parry(&self) -> Option<parry3d::shape::TriMesh> {
-        let vertices = self
-            .vertices_m
+        parry3d::shape::TriMesh::new(self.parry_vertices(), self.triangles.clone()).ok()
+    }
+
+    /// The convex hull of the vertices (parry3d's); `None` for a flat or degenerate mesh.
+    pub fn convex_hull(&self) -> Option<parry3d::shape::ConvexPolyhedron> {
+        parry3d::shape::ConvexPolyhedron::from_convex_hull(&self.parry_vertices())
+    }
+
+    fn parry_vertices(&self) -> Vec<parry3d::math::Vector> {
+        self.vertices_m
             .iter()
             .map(|v| parry3d::math::Vector::new(v[0], v[1], v[2]))
-            .collect();
-        parry3d::shape::TriMesh::new(vertices, self.triangles.clone()).ok()
+            .collect()
     }
 
     pub fn vertex(&self, i: u32) -> Point3<f64> {

@@ -56,13 +56,7 @@ const FACE_MERGE_RAD: f64 = 5.0 * std::f64::consts::PI / 180.0;
 impl RestingFaces {
     /// The stable faces of `mesh`'s convex hull; `None` for a flat or degenerate mesh.
     pub fn from_mesh(mesh: &Mesh) -> Option<Self> {
-        let points: Vec<_> = mesh
-            .vertices_m
-            .iter()
-            .map(|v| parry3d::math::Vector::new(v[0], v[1], v[2]))
-            .collect();
-        let hull = parry3d::shape::ConvexPolyhedron::from_convex_hull(&points)?;
-        let (pts, tris) = hull.to_trimesh();
+        let (pts, tris) = mesh.convex_hull()?.to_trimesh();
         let p: Vec<Point3<f64>> = pts
             .iter()
             .map(|v| Point3::new(f64::from(v.x), f64::from(v.y), f64::from(v.z)))
