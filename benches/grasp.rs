@@ -121,6 +121,7 @@ fn bench<M: Measurement>(c: &mut BenchmarkGroup<'_, M>) {
                 point_m: [0.0, 0.0, 0.0],
             }),
             translation_std_m: None,
+            reference_sees: true,
         };
         let label = format!(
             "decide_1000_samples_{name}_{}tri_{:?}_{}parts",
@@ -148,6 +149,7 @@ fn bench<M: Measurement>(c: &mut BenchmarkGroup<'_, M>) {
             point_m: [0.0, 0.0, 0.0],
         }),
         translation_std_m: None,
+        reference_sees: true,
     };
     c.bench_function("choose_among_candidates_1000_samples_025_mug", |b| {
         b.iter(|| pool.install(|| decide(&object, &gripper, &estimate, black_box(&s), &query).expect("decision")))

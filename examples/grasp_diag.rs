@@ -47,6 +47,7 @@ fn main() -> anyhow::Result<()> {
             grasp: None,
             support_plane: Some(table),
             translation_std_m: None,
+            reference_sees: true,
         };
         for (t, r) in NOISE {
             let d = decide(

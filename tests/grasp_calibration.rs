@@ -43,6 +43,7 @@ fn predicted_p_matches_outcomes_on_truth_from_the_same_distribution() {
         grasp: Some(grasp),
         support_plane: Some(plane),
         translation_std_m: None,
+        reference_sees: true,
     };
     let mut rng = ChaCha8Rng::seed_from_u64(42);
     let mut records = Vec::new();

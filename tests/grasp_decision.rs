@@ -55,6 +55,7 @@ fn query(grasp: Option<Grasp>) -> DecisionQuery {
         grasp,
         support_plane: Some(table()),
         translation_std_m: None,
+        reference_sees: true,
     }
 }
 
@@ -96,6 +97,26 @@ fn tiny_uncertainty_around_a_centred_can_grasps() {
     );
     // the planned gripper pose works on the estimate itself
     assert!(success_on_pose(&can, &gripper, &d.reference_from_gripper, &est, Some(&table())).unwrap());
+}
+
+/// The same tight distribution while the robot's camera looks away: the rate is as high,
+/// the answer `observe` (the pose in the robot's frame rests on odometry then).
+#[test]
+fn a_pose_the_reference_camera_does_not_see_is_not_grasped() {
+    let gripper = Gripper::default_parallel_jaw();
+    let can = GraspObject::new(&ycb("002_master_chef_can")).unwrap();
+    let est = standing(&can);
+    let samples = PoseSamples::gaussian(&est, [0.001; 3], [0.5f64.to_radians(); 3], 1000, 1);
+    let seen = decide(&can, &gripper, &est, &samples, &query(None)).unwrap();
+    let unseen = DecisionQuery {
+        reference_sees: false,
+        ..query(None)
+    };
+    let d = decide(&can, &gripper, &est, &samples, &unseen).unwrap();
+    assert_eq!(seen.decision, Verdict::Grasp);
+    assert_eq!(d.decision, Verdict::Observe);
+    assert!(!d.reference_sees && seen.reference_sees);
+    assert_eq!(d.p_success_raw, seen.p_success_raw);
 }
 
 #[test]

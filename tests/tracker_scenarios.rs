@@ -677,3 +677,50 @@ fn repeated_evidence_does_not_collapse_the_particle_weights() {
         "untempered, repeated evidence should thin the particles: {eight_plain} against {one}"
     );
 }
+
+/// Whether the robot's camera sees a track comes from its own frames: a step without one
+/// keeps the answer (cameras publish at their own rates), a frame that looks away makes it
+/// `false`, and seeing the object again makes it `true` (the grasp decision answers `observe`
+/// in between).
+#[test]
+fn the_reference_camera_sees_a_track_only_in_frames_that_show_it() {
+    let mesh = pregrasp::mesh::builtin("box").unwrap();
+    let cb = coarse_codebook(&mesh);
+    let truth_world = on_table(&mesh, 1.2, 0.1, 0.4);
+    let scene = Scene::new(vec![("box".into(), mesh.clone(), truth_world)]);
+    let base_from_camera = look_at([0.1, 0.0, 0.6], [1.0, 0.0, 0.1]);
+    let looking_away = look_at([0.1, 0.0, 0.6], [-1.0, 0.5, 0.1]);
+    let mut cams = BTreeMap::new();
+    cams.insert("robot".to_string(), CameraMount::Robot { base_from_camera });
+    let mut tracker = Tracker::new(TrackerConfig::default(), cams, "robot".into());
+    tracker.add_object_model("box", mesh.clone(), cb);
+    let mut seen = Vec::new();
+    for step in 0..7i64 {
+        // 0-2: sees the box; 3: no frame; 4-5: the camera turned away; 6: sees it again
+        let camera = if (4..=5).contains(&step) {
+            looking_away
+        } else {
+            base_from_camera
+        };
+        let frames = match step {
+            3 => vec![],
+            _ => vec![frame(
+                "robot",
+                &camera,
+                &scene,
+                step == 0 || step == 6,
+                true,
+                0.01,
+                step as u64,
+            )],
+        };
+        let odom = RobotOdometry {
+            base_from_camera: camera,
+            ..odometry(Pose::identity(), base_from_camera, step)
+        };
+        tracker.step(&frames, Some(&odom)).unwrap();
+        let id = tracker.tracks()[0].id;
+        seen.push(tracker.reference_sees(id).expect("a track"));
+    }
+    assert_eq!(seen, [true, true, true, true, false, false, true]);
+}

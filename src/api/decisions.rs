@@ -247,6 +247,12 @@ pub struct DecisionView {
     /// The track's translation spread (m, RMS distance of its particles from their mean) at
     /// this answer: the map is fitted apart for tight and loose tracks.
     pub translation_std_m: Option<f64>,
+    /// `false` when the reference (robot) camera's latest frame did not show the object (it
+    /// looks away): its pose in that frame then rests on odometry and the robot's localisation, and
+    /// the answer is `observe` whatever `p_success` says (held out, such answers of a high
+    /// raw rate failed several times as often as the others). A stationary reference camera
+    /// always counts as seeing.
+    pub reference_sees: bool,
     pub calibration: CalibrationView,
     pub rule: RuleView,
     pub smoothing: SmoothingView,
@@ -397,6 +403,7 @@ impl From<&DecisionRecord> for DecisionView {
             p_success_raw: d.p_success_raw,
             ci95_raw: d.ci95_raw,
             translation_std_m: d.translation_std_m,
+            reference_sees: d.reference_sees,
             calibration: CalibrationView::new(&d.calibration, &r.settings_hash),
             rule: RuleView::new(&d.rule, d.rule_value),
             smoothing: SmoothingView::new(d),
@@ -524,6 +531,7 @@ mod tests {
             grasp: None,
             support_plane: None,
             translation_std_m: None,
+            reference_sees: true,
         };
         let mut d =
             grasp::decide_calibrated(&object, &gripper, &estimate, &samples, &query, calibration).expect("decision");

@@ -66,6 +66,11 @@ pub struct DecisionFeatures {
     pub rotation_entropy: f64,
     /// Cameras that gave evidence in the step.
     pub views_seeing: usize,
+    /// The reference camera's latest frame showed the object, or the camera is stationary
+    /// ([`crate::tracker::Tracker::reference_sees`]); the rule answers `observe` when not.
+    /// `None` in records of older runs (no such check).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reference_sees: Option<bool>,
     /// Distance from the reference camera to the *estimated* position (m).
     pub estimated_distance_m: f64,
     /// RMS distance of the particles from their mean (m).

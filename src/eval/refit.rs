@@ -165,7 +165,11 @@ fn smoothed<'a>(
         let mut smoother = AnswerSmoother::new(time_constant_s);
         for d in approach {
             let (raw, spread) = raw_of(d);
-            out.push((d, smoother.update(d.stamp_ns, raw, spread, calibration, rule)));
+            let sees = d.features.as_ref().and_then(|f| f.reference_sees).unwrap_or(true);
+            out.push((
+                d,
+                smoother.update_seen(d.stamp_ns, raw, spread, calibration, rule, sees),
+            ));
         }
     }
     out
@@ -1058,6 +1062,7 @@ mod tests {
                 top_mode_mass: Some(0.9),
                 rotation_entropy: 1.0,
                 views_seeing: 3,
+                reference_sees: Some(true),
                 estimated_distance_m: distance_m,
                 translation_std_m: 0.01,
             }),
@@ -1261,6 +1266,28 @@ mod tests {
         assert_eq!(by.get("contact"), Some(&1));
         assert_eq!(by.get("alignment"), Some(&1));
         assert_eq!(by.len(), 2, "{by:?}");
+    }
+
+    /// The replay answers as the service does: a record whose reference camera did not see
+    /// the object is `observe` and restarts the run; records of older runs (no such field)
+    /// count as seen.
+    #[test]
+    fn replay_answers_observe_where_the_reference_camera_did_not_see() {
+        let mut d: Vec<DecisionOutcome> = (0..4).map(|f| rec("a", f, 0.95, true, 1.0)).collect();
+        if let Some(f) = d[1].features.as_mut() {
+            f.reference_sees = Some(false);
+        }
+        if let Some(f) = d[3].features.as_mut() {
+            f.reference_sees = None;
+        }
+        let rule = GraspRule {
+            quantity: RuleQuantity::RawLower,
+            threshold: 0.5,
+            run_length: 1,
+        };
+        let out = replay(&d, &Calibration::raw("test"), &rule, 0.0);
+        let grasp: Vec<bool> = out.iter().map(|o| o.grasp).collect();
+        assert_eq!(grasp, [true, false, true, true]);
     }
 
     #[test]

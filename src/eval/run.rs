@@ -588,6 +588,7 @@ fn decide_once(
         grasp: None,
         support_plane: plane_estimated,
         translation_std_m: Some(est.translation_std_m),
+        reference_sees: tracker.reference_sees(track_id).unwrap_or(true),
     };
     let decision = match grasp::decide(object, &dc.gripper, &est.reference_from_object, &samples, &query) {
         Ok(d) => d,
@@ -619,6 +620,7 @@ fn decide_once(
         top_mode_mass: est.rotation_modes.iter().map(|m| m.mass).max_by(f64::total_cmp),
         rotation_entropy: est.rotation_entropy,
         views_seeing: track.map_or(0, |t| t.seen_by.len()),
+        reference_sees: tracker.reference_sees(track_id),
         estimated_distance_m: est.reference_from_object.translation.vector.norm(),
         translation_std_m: est.translation_std_m,
     };

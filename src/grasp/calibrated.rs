@@ -752,12 +752,13 @@ impl AnswerSmoother {
     /// calibrated ones by the decision's rule (the raw rate and its interval stay this
     /// answer's own); `smoothing` says how. `stamp_ns` is the tracker step's stamp.
     pub fn apply(&mut self, stamp_ns: i64, decision: &mut super::Decision, calibration: &Calibration) {
-        let a = self.update(
+        let a = self.update_seen(
             stamp_ns,
             (decision.p_success_raw, decision.ci95_raw),
             decision.translation_std_m,
             calibration,
             &decision.rule,
+            decision.reference_sees,
         );
         decision.smoothing = Some(SmoothingStatus {
             time_constant_s: self.time_constant_s,
@@ -782,10 +783,25 @@ impl AnswerSmoother {
     pub fn update(
         &mut self,
         stamp_ns: i64,
+        raw: (f64, [f64; 2]),
+        translation_std_m: Option<f64>,
+        calibration: &Calibration,
+        rule: &GraspRule,
+    ) -> SmoothedAnswer {
+        self.update_seen(stamp_ns, raw, translation_std_m, calibration, rule, true)
+    }
+
+    /// [`Self::update`] for an answer whose reference camera did (`reference_sees`) or did not
+    /// see the object: one that did not is `observe` and starts the rule's run over, while
+    /// its rate still enters the smoothed one.
+    pub fn update_seen(
+        &mut self,
+        stamp_ns: i64,
         (p_raw, ci95_raw): (f64, [f64; 2]),
         translation_std_m: Option<f64>,
         calibration: &Calibration,
         rule: &GraspRule,
+        reference_sees: bool,
     ) -> SmoothedAnswer {
         match self.latest {
             Some(l) if stamp_ns == l.stamp_ns => {}
@@ -815,7 +831,11 @@ impl AnswerSmoother {
         };
         let (pc, cic, _) = calibration.calibrate(p, ci, spread);
         let value = calibration.rule_value(rule, (pc, cic), (p, ci), spread);
-        let run = if value >= rule.threshold { run_before + 1 } else { 0 };
+        let run = if value >= rule.threshold && reference_sees {
+            run_before + 1
+        } else {
+            0
+        };
         self.latest = Some(Smoothed {
             stamp_ns,
             p_raw: p,
@@ -1230,6 +1250,41 @@ mod tests {
             .map(|(i, &p)| s.update(i as i64 * 100_000_000, (p, [p, p]), None, &cal, &rule).grasp)
             .collect();
         assert_eq!(grasp, [false, false, false, false, false, true, true]);
+    }
+
+    /// While the robot's camera looks away the answer is `observe` and the rule's run starts
+    /// over; the rate still smooths on, so the run rebuilds from the next seen answer.
+    #[test]
+    fn an_answer_the_reference_camera_did_not_see_is_observe_and_restarts_the_run() {
+        let m = map_of(
+            vec![block(0.0, 0.5, 100, 10), block(0.5, 1.0, 100, 99)],
+            calibrated_rule(0.9, 2),
+            0.0,
+        );
+        let cal = Calibration::Fitted(Arc::new(m));
+        let rule = cal.rule();
+        let mut s = cal.smoother();
+        let seen = [true, true, true, false, false, true, true];
+        let out: Vec<(bool, u32)> = seen
+            .iter()
+            .enumerate()
+            .map(|(i, &sees)| {
+                let a = s.update_seen(i as i64 * 100_000_000, (0.95, [0.94, 0.96]), None, &cal, &rule, sees);
+                (a.grasp, a.run)
+            })
+            .collect();
+        assert_eq!(
+            out,
+            [
+                (false, 1),
+                (true, 2),
+                (true, 3),
+                (false, 0),
+                (false, 0),
+                (false, 1),
+                (true, 2)
+            ]
+        );
     }
 
     #[test]

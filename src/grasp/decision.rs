@@ -80,6 +80,10 @@ pub struct DecisionQuery {
     /// The track's translation spread (RMS distance of its particles from their mean), which
     /// a map with spread strata reads; `None`: the map's pooled fit.
     pub translation_std_m: Option<f64>,
+    /// The reference camera's latest frame showed the object, or the camera is stationary
+    /// (`Tracker::reference_sees`). When not (a robot's camera looking away: the pose in its
+    /// frame rests on odometry and localisation), the answer is `observe` whatever the rate.
+    pub reference_sees: bool,
 }
 
 impl Default for DecisionQuery {
@@ -90,6 +94,7 @@ impl Default for DecisionQuery {
             grasp: None,
             support_plane: None,
             translation_std_m: None,
+            reference_sees: true,
         }
     }
 }
@@ -177,6 +182,10 @@ pub struct RankedGrasp {
     pub n_samples: usize,
 }
 
+fn yes() -> bool {
+    true
+}
+
 /// The answer.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Decision {
@@ -205,6 +214,11 @@ pub struct Decision {
     /// The track's translation spread the map read (`None`: its pooled fit).
     #[serde(default)]
     pub translation_std_m: Option<f64>,
+    /// `false`: the reference camera's latest frame did not show the object (a
+    /// robot's camera looking away), so the answer is `observe` whatever `p_success` says
+    /// ([`DecisionQuery::reference_sees`]).
+    #[serde(default = "yes")]
+    pub reference_sees: bool,
     /// The value of the rule's quantity that was compared with its threshold.
     #[serde(default)]
     pub rule_value: f64,
@@ -776,7 +790,7 @@ pub fn decide_calibrated(
     let mut uncertainty = axis_drivers(&failed, &offsets, frames);
     uncertainty.sort_by(|a, b| b.failure_dependence.total_cmp(&a.failure_dependence));
     Ok(Decision {
-        decision: if rule_value >= rule.threshold && rule.run_length <= 1 {
+        decision: if rule_value >= rule.threshold && rule.run_length <= 1 && query.reference_sees {
             Verdict::Grasp
         } else {
             Verdict::Observe
@@ -788,6 +802,7 @@ pub fn decide_calibrated(
         calibration: status,
         rule,
         translation_std_m: spread,
+        reference_sees: query.reference_sees,
         rule_value,
         smoothing: None,
         n_samples: n,

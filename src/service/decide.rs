@@ -87,6 +87,7 @@ impl ServiceState {
                 .map(|p| Grasp::from_pose(&object, p, "client")),
             support_plane,
             translation_std_m: Some(drawn.translation_std_m),
+            reference_sees: drawn.reference_sees,
         };
         let mut d = grasp::decide_calibrated(
             &object,
@@ -261,6 +262,7 @@ mod tests {
                 },
                 world_from_reference: Pose::identity(),
                 base_from_reference: None,
+                reference_sees: true,
             },
         }]);
     }

@@ -91,6 +91,9 @@ pub struct Drawn {
     pub samples: PoseSamples,
     pub world_from_reference: Pose,
     pub base_from_reference: Option<Pose>,
+    /// The reference camera's latest frame showed the object, or the camera is stationary
+    /// ([`crate::tracker::Tracker::reference_sees`]); the answer is `observe` when not.
+    pub reference_sees: bool,
 }
 
 /// Solid shapes per mesh content hash (a convex decomposition takes up to a second; it is

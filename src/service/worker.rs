@@ -335,6 +335,7 @@ pub(super) fn draw_samples(state: &ServiceState, track_id: u64, n: usize) -> Res
         samples,
         world_from_reference: engine.tracker.world_from_reference(),
         base_from_reference: engine.base_from_reference,
+        reference_sees: engine.tracker.reference_sees(track_id).unwrap_or(true),
     })
 }
 
@@ -587,6 +588,7 @@ fn refill_sample_banks(state: &ServiceState, engine: &mut Engine, stopped: &Hash
                 samples,
                 world_from_reference,
                 base_from_reference: engine.base_from_reference,
+                reference_sees: engine.tracker.reference_sees(track_id).unwrap_or(true),
             },
         });
     }

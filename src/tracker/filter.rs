@@ -656,6 +656,18 @@ impl Tracker {
         &self.reference
     }
 
+    /// Whether the track's pose in the reference frame is seen: the reference camera's latest
+    /// frame gave evidence of it (steps without a frame of the reference camera, whose
+    /// cameras publish at their own rates, keep the answer), or the reference camera is
+    /// stationary (its frame does not drift). `false` while a robot's camera looks away: the
+    /// pose then rests on odometry and the other cameras seen through the robot's
+    /// localisation. `None`: no such track.
+    pub fn reference_sees(&self, track_id: u64) -> Option<bool> {
+        let t = self.tracks.iter().find(|t| t.id == track_id)?;
+        let stationary = matches!(self.cameras.get(&self.reference), Some(CameraMount::Stationary { .. }));
+        Some(stationary || t.reference_seen)
+    }
+
     pub fn world_from_reference(&self) -> Pose {
         self.world_from_reference
     }
@@ -903,6 +915,13 @@ impl Tracker {
 
         // 3. update, 4. estimates and resampling
         self.update_tracks(&views, &mut report);
+        // whether the reference camera sees each track, from the steps that carry its frame
+        if views.iter().any(|(f, _, _)| f.camera == self.reference) {
+            let stamp = self.stamp_ns;
+            for t in &mut self.tracks {
+                t.reference_seen = t.stamp_ns == stamp && t.seen_by.contains(&self.reference);
+            }
+        }
         report.timings.total_s = t_start.elapsed().as_secs_f64();
         Ok(report)
     }
@@ -1027,6 +1046,7 @@ impl Tracker {
                             best_similarity: None,
                             weak_steps: 0,
                             seen_by: Vec::new(),
+                            reference_seen: true,
                             reinitialised: None,
                         });
                         self.states.push(TrackState {

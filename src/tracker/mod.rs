@@ -111,6 +111,10 @@ pub enum TrackStatus {
     Lost,
 }
 
+fn yes() -> bool {
+    true
+}
+
 /// One tracked object instance.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Track {
@@ -126,6 +130,10 @@ pub struct Track {
     pub weak_steps: u32,
     /// Cameras that gave evidence in the last step.
     pub seen_by: Vec<String>,
+    /// The reference camera's latest frame gave evidence of the track (a step without a frame
+    /// of the reference camera keeps it): see [`Tracker::reference_sees`].
+    #[serde(default = "yes")]
+    pub reference_seen: bool,
     /// When and why the track last started again (None: never).
     #[serde(default)]
     pub reinitialised: Option<Reinitialisation>,

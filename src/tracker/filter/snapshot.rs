@@ -155,6 +155,7 @@ impl Tracker {
             best_similarity: None,
             weak_steps: 0,
             seen_by: Vec::new(),
+            reference_seen: true,
             reinitialised: None,
         });
         let state = state_from_column(
