@@ -577,6 +577,7 @@ fn decide_once(
     let Some(samples) = tracker.sample_poses(track_id, dc.n_samples, rng) else {
         return Ok(None);
     };
+    let reference_sees = tracker.reference_sees(track_id);
     let plane_world = seq.rig.support_plane.map(|p| SupportPlane {
         normal: p.normal,
         point_m: p.point_m,
@@ -588,7 +589,7 @@ fn decide_once(
         grasp: None,
         support_plane: plane_estimated,
         translation_std_m: Some(est.translation_std_m),
-        reference_sees: tracker.reference_sees(track_id).unwrap_or(true),
+        reference_sees: reference_sees.unwrap_or(true),
     };
     let decision = match grasp::decide(object, &dc.gripper, &est.reference_from_object, &samples, &query) {
         Ok(d) => d,
@@ -620,7 +621,7 @@ fn decide_once(
         top_mode_mass: est.rotation_modes.iter().map(|m| m.mass).max_by(f64::total_cmp),
         rotation_entropy: est.rotation_entropy,
         views_seeing: track.map_or(0, |t| t.seen_by.len()),
-        reference_sees: tracker.reference_sees(track_id),
+        reference_sees,
         estimated_distance_m: est.reference_from_object.translation.vector.norm(),
         translation_std_m: est.translation_std_m,
     };
