@@ -288,14 +288,10 @@ fn steps(seq: &Sequence, cameras: &[String]) -> Vec<(u32, i64)> {
     ids
 }
 
-/// The frames of one step, each camera's own capture.
-fn frames_of_step(
-    seq: &Sequence,
-    cameras: &[String],
-    frame_id: u32,
-    known: &BTreeMap<String, Arc<Model>>,
-    seed: u64,
-) -> Result<Vec<CameraFrame>, EvalError> {
+/// The frames of one step, each camera's own capture, with the detections of every object in
+/// view: the tracker starts tracks only for the models it was given, and reads the other boxes
+/// as what may hide an object ([`crate::tracker`]'s depth of a detection).
+fn frames_of_step(seq: &Sequence, cameras: &[String], frame_id: u32, seed: u64) -> Result<Vec<CameraFrame>, EvalError> {
     let mut frames = Vec::new();
     for cam in cameras {
         let Some(meta) = seq.cameras.get(cam).and_then(|c| c.frames.get(&frame_id)) else {
@@ -304,11 +300,7 @@ fn frames_of_step(
         let data = |e: crate::dataset::DatasetError| EvalError::Data(e.to_string());
         let depth = seq.load_depth(cam, frame_id).map_err(data)?;
         let color = seq.load_rgb(cam, frame_id).map_err(data)?;
-        let detections = seq
-            .detections(cam, frame_id, seed)
-            .into_iter()
-            .filter(|d| known.contains_key(&d.object))
-            .collect();
+        let detections = seq.detections(cam, frame_id, seed);
         frames.push(CameraFrame {
             camera: cam.clone(),
             stamp_ns: meta.stamp_ns,
@@ -374,7 +366,7 @@ pub fn evaluate_sequence(
     let (mut step_s, mut audited, mut audit_outside) = (0.0, 0, 0);
     let (mut matched_sum, mut active_sum) = (0usize, 0usize);
     for &(frame_id, stamp_ns) in plan {
-        let frames = frames_of_step(seq, &cameras, frame_id, &models, cfg.detection_seed)?;
+        let frames = frames_of_step(seq, &cameras, frame_id, cfg.detection_seed)?;
         let odometry = robot_fed
             .as_ref()
             .and_then(|_| seq.odometry.as_ref()?.get(&frame_id))

@@ -5,7 +5,8 @@
 //!    particle, the rotation prior re-binned once through a pull map), Brownian object motion,
 //!    and the wrap-around blur of every histogram.
 //! 2. Detections start tracks (or add a camera's component to a young track, or restart a
-//!    track the filter declared lost); a tracked object ignores them.
+//!    track the filter declared lost) at the depth read in their box, leaving out what
+//!    another, nearer detection covers ([`detection_centre`]).
 //! 3. Update: per view, the evidence of [`observation`](super::observation) is pulled into the
 //!    reference bins through one bin map per view and step and summed in log space (Eq. 6);
 //!    the posterior is the prior (floored at `prior_floor_rel` times the bin's volume, times the
@@ -26,6 +27,7 @@ mod snapshot;
 mod update;
 pub use snapshot::{SNAPSHOT_VERSION, TrackPrior, TrackSnapshot, TrackerSnapshot};
 
+use crate::camera::Intrinsics;
 use crate::geometry::{Pose, PoseSamples};
 use crate::mesh::Mesh;
 use crate::tracker::bins::{GridTables, gaussian_kernel};
@@ -1150,41 +1152,128 @@ impl Tracker {
 
 /// The pixel of a detection's centre and the depth of the object's centre behind it: the
 /// lower quartile of the depth readings in the box's central half plus a quarter of the
-/// object's diameter
-/// (the visible surface is in front of the centre), or the depth at which the object's
-/// diameter fills the box when no reading is there.
+/// object's diameter (the visible surface is in front of the centre), or the depth at which
+/// the object's diameter fills the box when no reading is there. Readings inside the box of
+/// another detection that stands nearer are left out: an object half hidden behind another
+/// has its occluder's depth in its box, and the lower quartile would place it there (the
+/// whole box is read when the occluder covers the central half).
 pub(super) fn detection_centre(frame: &CameraFrame, det: &Detection, diameter: f64) -> ([f64; 2], f64) {
     let [bx, by, bw, bh] = det.bbox_xywh_px;
     // the box covers pixel columns bx .. bx + bw, so its centre is at bx + bw / 2 - 0.5
     let (cu, cv) = (bx + bw / 2.0 - 0.5, by + bh / 2.0 - 0.5);
     let k = &frame.intrinsics;
-    let mut depths: Vec<f32> = Vec::new();
-    let (x0, x1) = (
-        (bx + bw * 0.25).max(0.0) as u32,
-        ((bx + bw * 0.75) as u32).min(k.width.saturating_sub(1)),
-    );
-    let (y0, y1) = (
-        (by + bh * 0.25).max(0.0) as u32,
-        ((by + bh * 0.75) as u32).min(k.height.saturating_sub(1)),
-    );
-    for y in y0..=y1 {
-        for x in x0..=x1 {
+    let whole = PixelRect::new(k, bx, by, bx + bw - 1.0, by + bh - 1.0);
+    let central = PixelRect::new(k, bx + bw * 0.25, by + bh * 0.25, bx + bw * 0.75, by + bh * 0.75);
+    let nearer: Vec<PixelRect> = frame
+        .detections
+        .iter()
+        .filter(|o| o.bbox_xywh_px != det.bbox_xywh_px)
+        .map(|o| {
+            let [x, y, w, h] = o.bbox_xywh_px;
+            PixelRect::new(k, x, y, x + w - 1.0, y + h - 1.0)
+        })
+        .filter(|o| o.overlaps(&whole) && stands_nearer(frame, o, &whole))
+        .collect();
+    let mut depths = depth_readings(frame, &central, &nearer, 1);
+    if depths.len() < MIN_DEPTH_READINGS && !nearer.is_empty() {
+        depths = depth_readings(frame, &whole, &nearer, 1);
+        if depths.len() < MIN_DEPTH_READINGS {
+            depths = depth_readings(frame, &central, &[], 1);
+        }
+    }
+    // the lower quartile: a thin or curved object leaves the box's centre to the table behind
+    // it, whose readings would place the object there
+    let z0 = match lower_quartile(&mut depths) {
+        Some(q) => q + 0.25 * diameter,
+        None => k.fx() * diameter * 0.8 / bw.max(bh),
+    };
+    ([cu, cv], z0)
+}
+
+/// Fewest depth readings a detection's depth is read from before a larger region is tried.
+const MIN_DEPTH_READINGS: usize = 8;
+
+/// Pixels read from a box when telling which of two overlapping detections stands nearer (a
+/// quartile of this many readings is within a few centimetres at 3 m).
+const OCCLUSION_SAMPLE_PX: f64 = 2000.0;
+
+/// An inclusive rectangle of pixels, clipped to the image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PixelRect {
+    x0: u32,
+    x1: u32,
+    y0: u32,
+    y1: u32,
+}
+
+impl PixelRect {
+    /// The pixels from column `floor(x0)` to `floor(x1)` and row `floor(y0)` to `floor(y1)`,
+    /// clipped to the image.
+    fn new(k: &Intrinsics, x0: f64, y0: f64, x1: f64, y1: f64) -> Self {
+        Self {
+            x0: x0.max(0.0) as u32,
+            x1: (x1.max(0.0) as u32).min(k.width.saturating_sub(1)),
+            y0: y0.max(0.0) as u32,
+            y1: (y1.max(0.0) as u32).min(k.height.saturating_sub(1)),
+        }
+    }
+
+    fn contains(&self, x: u32, y: u32) -> bool {
+        (self.x0..=self.x1).contains(&x) && (self.y0..=self.y1).contains(&y)
+    }
+
+    fn overlaps(&self, o: &Self) -> bool {
+        self.x0 <= o.x1 && o.x0 <= self.x1 && self.y0 <= o.y1 && o.y0 <= self.y1
+    }
+
+    fn area(&self) -> f64 {
+        f64::from(self.x1.saturating_sub(self.x0) + 1) * f64::from(self.y1.saturating_sub(self.y0) + 1)
+    }
+}
+
+/// The valid depth readings of `rect` outside every rectangle of `without`, every `stride`-th
+/// pixel in each direction.
+fn depth_readings(frame: &CameraFrame, rect: &PixelRect, without: &[PixelRect], stride: u32) -> Vec<f32> {
+    let mut out = Vec::new();
+    for y in (rect.y0..=rect.y1).step_by(stride.max(1) as usize) {
+        for x in (rect.x0..=rect.x1).step_by(stride.max(1) as usize) {
+            if without.iter().any(|w| w.contains(x, y)) {
+                continue;
+            }
             let d = frame.depth.get(x, y);
             if d > 0.0 && d.is_finite() {
-                depths.push(d);
+                out.push(d);
             }
         }
     }
-    let z0 = if depths.is_empty() {
-        k.fx() * diameter * 0.8 / bw.max(bh)
-    } else {
-        // the lower quartile: a thin or curved object leaves the box's centre to the table
-        // behind it, whose readings would place the object there
-        let q = depths.len() / 4;
-        depths.select_nth_unstable_by(q, |a, b| a.total_cmp(b));
-        depths[q] as f64 + 0.25 * diameter
+    out
+}
+
+fn lower_quartile(depths: &mut [f32]) -> Option<f64> {
+    if depths.is_empty() {
+        return None;
+    }
+    let q = depths.len() / 4;
+    depths.select_nth_unstable_by(q, |a, b| a.total_cmp(b));
+    Some(f64::from(depths[q]))
+}
+
+/// Whether the detection of box `other` stands in front of the one of box `own`: the lower
+/// quartile of its readings is nearer than that of `own`'s readings outside it by more than
+/// the two quartiles' noise (the sensor's noise grows with the distance).
+fn stands_nearer(frame: &CameraFrame, other: &PixelRect, own: &PixelRect) -> bool {
+    let stride = |r: &PixelRect| (r.area() / OCCLUSION_SAMPLE_PX).sqrt().ceil().max(1.0) as u32;
+    let Some(z_other) = lower_quartile(&mut depth_readings(frame, other, &[], stride(other))) else {
+        return false;
     };
-    ([cu, cv], z0)
+    let mut own_readings = depth_readings(frame, own, std::slice::from_ref(other), stride(own));
+    if own_readings.len() < MIN_DEPTH_READINGS {
+        return false;
+    }
+    let Some(z_own) = lower_quartile(&mut own_readings) else {
+        return false;
+    };
+    z_other < z_own - (0.02 + 0.02 * z_own)
 }
 
 fn normalise(w: &mut [f64]) {
@@ -1301,6 +1390,71 @@ mod tests {
         fn assert_send_sync<T: Send + Sync>() {}
         assert_send_sync::<Tracker>();
         assert_send_sync::<Codebook>();
+    }
+
+    /// A 640 x 480 frame of a wall at `wall_m` with rectangles `[x0, y0, x1, y1)` at their
+    /// depths, and the given detections.
+    fn depth_scene(wall_m: f32, rects: &[([u32; 4], f32)], detections: Vec<Detection>) -> CameraFrame {
+        let (w, h) = (640u32, 480u32);
+        let mut data = vec![wall_m; (w * h) as usize];
+        for ([x0, y0, x1, y1], z) in rects {
+            for y in *y0..*y1 {
+                for x in *x0..*x1 {
+                    data[(y * w + x) as usize] = *z;
+                }
+            }
+        }
+        CameraFrame {
+            camera: "cam".into(),
+            stamp_ns: 0,
+            intrinsics: Intrinsics::new(w, h, [615.0, 0.0, 319.5, 0.0, 615.0, 239.5, 0.0, 0.0, 1.0]).unwrap(),
+            depth: crate::camera::DepthImage::new(w, h, data).unwrap(),
+            color: None,
+            detections,
+        }
+    }
+
+    fn detection(object: &str, [x0, y0, x1, y1]: [u32; 4]) -> Detection {
+        Detection {
+            object: object.into(),
+            bbox_xywh_px: [f64::from(x0), f64::from(y0), f64::from(x1 - x0), f64::from(y1 - y0)],
+            score: 1.0,
+        }
+    }
+
+    #[test]
+    fn a_detection_half_hidden_behind_a_nearer_one_takes_its_own_depth() {
+        // the drill's visible box (300..340) is half covered by a box 25 cm nearer (300..322)
+        let drill = detection("drill", [300, 230, 340, 250]);
+        let sugar = detection("sugar", [300, 210, 322, 260]);
+        let rects = [([322, 230, 340, 250], 2.85), ([300, 210, 322, 260], 2.60)];
+        let diameter = 0.2;
+        let alone = depth_scene(4.0, &rects, vec![drill.clone()]);
+        let (_, z_alone) = detection_centre(&alone, &drill, diameter);
+        assert!(
+            (z_alone - 2.65).abs() < 1e-3,
+            "without the occluder's box: its depth, {z_alone}"
+        );
+        let both = depth_scene(4.0, &rects, vec![sugar.clone(), drill.clone()]);
+        let (_, z) = detection_centre(&both, &drill, diameter);
+        assert!((z - 2.90).abs() < 1e-3, "with it: the drill's own readings, {z}");
+        // the nearer object is not moved by the farther one whose box overlaps its own
+        let (_, z_sugar) = detection_centre(&both, &sugar, diameter);
+        let (_, z_sugar_alone) = detection_centre(&depth_scene(4.0, &rects, vec![sugar.clone()]), &sugar, diameter);
+        assert_eq!(z_sugar, z_sugar_alone);
+        assert!((z_sugar - 2.65).abs() < 1e-3, "{z_sugar}");
+    }
+
+    #[test]
+    fn an_occluder_over_the_whole_box_centre_leaves_the_rest_of_the_box() {
+        // the occluder's box covers the drill box's central half entirely: the drill's readings
+        // are read from the rest of its box
+        let drill = detection("drill", [300, 230, 360, 250]);
+        let can = detection("can", [310, 200, 350, 270]);
+        let rects = [([300, 230, 360, 250], 1.50), ([310, 200, 350, 270], 1.20)];
+        let frame = depth_scene(3.0, &rects, vec![can, drill.clone()]);
+        let (_, z) = detection_centre(&frame, &drill, 0.2);
+        assert!((z - 1.55).abs() < 1e-3, "{z}");
     }
 
     #[test]
