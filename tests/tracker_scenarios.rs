@@ -26,9 +26,10 @@ fn single_camera_converges_on_a_rendered_box() {
     let scene = Scene::new(vec![("box".into(), mesh.clone(), truth_world)]);
     let cam = look_at([-0.9, -0.3, 0.6], [0.0, 0.0, 0.08]);
     let truth = cam.inverse() * truth_world;
-    // one view of the box leaves near-equal answers (18 and 27-37 degrees off over ten filter
-    // seeds, half each, the truth's bin holding the same mass in both): five seeds, each
-    // judged by the truth's likelihood, the answers by their bound
+    // one view of the box leaves near-equal answers (before the detector's box weighed the
+    // first step: 18 and 27-37 degrees off over ten filter seeds, half each, the truth's bin
+    // holding the same mass in both; with it 21 degrees in four of five seeds, 27 in one):
+    // five seeds, each judged by the truth's likelihood, the answers by their bound
     let mut errors = Vec::new();
     for seed in 1..=5 {
         let mut cams = BTreeMap::new();
@@ -71,7 +72,10 @@ fn single_camera_converges_on_a_rendered_box() {
         ));
     }
     assert!(errors.iter().all(|e| *e < 40.0), "{errors:?}");
-    assert!(errors.iter().any(|e| *e < 20.0), "{errors:?}");
+    assert!(
+        errors.iter().filter(|e| **e < 25.0).count() >= 3,
+        "most seeds settle on the nearer answer: {errors:?}"
+    );
 }
 
 /// Yaw error (degrees) of an estimate about the mug's own axis, and the error of the axis.
@@ -628,8 +632,14 @@ fn survivors_with_duplicated_view(tempering: f64, copies: usize) -> Vec<usize> {
         // survivors are told apart by their positions: no regularising jitter
         spread: pregrasp::tracker::SpreadConfig::NONE,
         // the weights' tempering alone: turn mixing flattens every particle's marginal (with it
-        // the counts were 168 / 164 / 133, the same order, a narrower margin)
+        // the counts were 168 / 164 / 133, the same order, a narrower margin), and the first
+        // view's box, the only one, would weigh the first step apart from the copies' evidence
+        // (with it 167 / 170 / 138)
         turn_share: 0.0,
+        observation: pregrasp::tracker::observation::ObservationConfig {
+            detection_box: None,
+            ..Default::default()
+        },
         ..TrackerConfig::default()
     };
     let mut tracker = Tracker::new(config, cams, names[0].clone());

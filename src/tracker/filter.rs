@@ -11,7 +11,9 @@
 //!    reference bins through one bin map per view and step and summed in log space (Eq. 6);
 //!    the posterior is the prior (floored at `prior_floor_rel` times the bin's volume, times the
 //!    support prior's factor when [`TrackerConfig::support`] is on) times the fused likelihood;
-//!    the particle weight is multiplied by the marginal (Eq. 7) and the depth term.
+//!    the particle weight is multiplied by the marginal (Eq. 7), the depth term and, in every
+//!    view with a detection of the object, the box term
+//!    ([`ObservationConfig::detection_box`](super::observation::ObservationConfig)).
 //! 4. Component weights are floored (`min_component_weight`) so that Eq. 2's mixture stays a
 //!    mixture; estimates (with the depth registration's positions when it is on, see
 //!    [`RegistrationConfig`]); resampling *within* each source camera's component

@@ -5,7 +5,7 @@
 use super::{MAP_REUSE_RAD, TrackState, Tracker, normalise, weight_exponent};
 use crate::geometry::Pose;
 use crate::tracker::bins::flat_of_matrix;
-use crate::tracker::observation::{ViewEvidence, ViewImage, encode_particles, view_evidence};
+use crate::tracker::observation::{ViewEvidence, ViewImage, box_loglik, encode_particles, view_evidence};
 use crate::tracker::sparse::{Lattice, RotationState, fused_max, fused_row, fused_update, map_bins, match_rows};
 use crate::tracker::{CameraFrame, StepReport, TrackStatus};
 use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
@@ -328,19 +328,41 @@ impl TrackUpdate<'_> {
         let mut evidence_view: Vec<usize> = Vec::new();
         let mut seen_by = Vec::new();
         let mut best_sim = f32::NEG_INFINITY;
-        let mut depth_log = vec![0f32; n];
+        // each particle's log-likelihood of its position: the views' depth checks and boxes
+        let mut position_log = vec![0f32; n];
         for (k, ((e, b), mut sim)) in encoded.iter().zip(&best).zip(sims).enumerate() {
             match e.evidence(&codebook, &mut sim, b, &obs_cfg) {
                 Some(ev) => {
                     best_sim = best_sim.max(ev.best_similarity);
                     seen_by.push(e.camera.clone());
-                    for (d, l) in depth_log.iter_mut().zip(&ev.depth_log) {
+                    for (d, l) in position_log.iter_mut().zip(&ev.depth_log) {
                         *d += l;
                     }
                     evidence.push(ev);
                     evidence_view.push(k);
                 }
                 None => self.sims.push(sim),
+            }
+        }
+        // the detector's boxes, in every view that has one of the object
+        if let Some(cfg) = &obs_cfg.detection_box {
+            for (frame, view_from_ref, _) in views {
+                let positions: Vec<Vector3<f64>> = self
+                    .state
+                    .positions
+                    .iter()
+                    .map(|p| (view_from_ref * Point3::from(*p)).coords)
+                    .collect();
+                let mean_view = (view_from_ref * Point3::from(mean_ref)).coords;
+                box_loglik(
+                    &frame.intrinsics,
+                    &frame.detections,
+                    &self.models[mi].name,
+                    &mean_view,
+                    &positions,
+                    cfg,
+                    &mut position_log,
+                );
             }
         }
         report.timings.likelihoods_s += t0.elapsed().as_secs_f64();
@@ -390,14 +412,14 @@ impl TrackUpdate<'_> {
             let v_unmatched = unmatched.1;
             let unmatched = unmatched.0;
             let marginal: Vec<f64> = sums.iter().zip(&unmatched).map(|(a, b)| a + b).collect();
-            // new log weights: old + (log marginal (Eq. 7) + depth term) tempered by the number
+            // new log weights: old + (log marginal (Eq. 7) + position terms) tempered by the number
             // of views (see `TrackerConfig::view_weight_tempering`)
             let alpha = weight_exponent(seen_by.len(), self.config.view_weight_tempering);
             let s = &mut *self.state;
             let mut logw: Vec<f64> = (0..n)
                 .map(|p| {
                     s.weights[p].max(1e-300).ln()
-                        + alpha * (marginal[p].max(1e-300).ln() + fmax[p] as f64 + depth_log[p] as f64)
+                        + alpha * (marginal[p].max(1e-300).ln() + fmax[p] as f64 + position_log[p] as f64)
                 })
                 .collect();
             let m = logw.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
