@@ -150,12 +150,7 @@ impl TrackUpdate<'_> {
         // 1. crops and codes of every view that has a usable crop
         let mut encoded: Vec<Encoded> = Vec::new();
         for (frame, view_from_ref, _ci) in views {
-            let positions: Vec<Vector3<f64>> = self
-                .state
-                .positions
-                .iter()
-                .map(|p| (view_from_ref * Point3::from(*p)).coords)
-                .collect();
+            let positions = in_view(&self.state.positions, view_from_ref);
             let mean_view = (view_from_ref * Point3::from(mean_ref)).coords;
             if let Some(uv) = frame.intrinsics.project(&Point3::from(mean_view))
                 && frame.intrinsics.contains(uv)
@@ -347,19 +342,13 @@ impl TrackUpdate<'_> {
         // the detector's boxes, in every view that has one of the object
         if let Some(cfg) = &obs_cfg.detection_box {
             for (frame, view_from_ref, _) in views {
-                let positions: Vec<Vector3<f64>> = self
-                    .state
-                    .positions
-                    .iter()
-                    .map(|p| (view_from_ref * Point3::from(*p)).coords)
-                    .collect();
                 let mean_view = (view_from_ref * Point3::from(mean_ref)).coords;
                 box_loglik(
                     &frame.intrinsics,
                     &frame.detections,
                     &self.models[mi].name,
                     &mean_view,
-                    &positions,
+                    &in_view(&self.state.positions, view_from_ref),
                     cfg,
                     &mut position_log,
                 );
@@ -1272,6 +1261,14 @@ fn unmatched_mass(
 }
 
 /// A mutex's guard, also after a panic elsewhere (the data is a track's own update).
+/// Positions of the reference frame seen from a view.
+fn in_view(positions: &[Vector3<f64>], view_from_ref: &Pose) -> Vec<Vector3<f64>> {
+    positions
+        .iter()
+        .map(|p| (view_from_ref * Point3::from(*p)).coords)
+        .collect()
+}
+
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
 }
