@@ -16,6 +16,15 @@ pub struct Detection {
     pub score: f64,
 }
 
+impl Detection {
+    /// The box's centre in pixel coordinates (pixel (0, 0) centred at (0, 0)): the box covers
+    /// pixel columns `x .. x + width`, so its centre is at `x + width / 2 - 0.5`.
+    pub fn centre_px(&self) -> [f64; 2] {
+        let [x, y, w, h] = self.bbox_xywh_px;
+        [x + w / 2.0 - 0.5, y + h / 2.0 - 0.5]
+    }
+}
+
 /// One camera's frame at one time.
 #[derive(Debug, Clone)]
 pub struct CameraFrame {

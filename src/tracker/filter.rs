@@ -1161,8 +1161,7 @@ impl Tracker {
 /// whole box is read when the occluder covers the central half).
 pub(super) fn detection_centre(frame: &CameraFrame, det: &Detection, diameter: f64) -> ([f64; 2], f64) {
     let [bx, by, bw, bh] = det.bbox_xywh_px;
-    // the box covers pixel columns bx .. bx + bw, so its centre is at bx + bw / 2 - 0.5
-    let (cu, cv) = (bx + bw / 2.0 - 0.5, by + bh / 2.0 - 0.5);
+    let [cu, cv] = det.centre_px();
     let k = &frame.intrinsics;
     let whole = PixelRect::new(k, bx, by, bx + bw - 1.0, by + bh - 1.0);
     let central = PixelRect::new(k, bx + bw * 0.25, by + bh * 0.25, bx + bw * 0.75, by + bh * 0.75);

@@ -128,13 +128,14 @@ pub fn box_loglik(
     let Some(mean_uv) = intrinsics.project(&nalgebra::Point3::from(*mean_view_m)) else {
         return;
     };
-    // a box covers pixel columns x .. x + w, so its centre is at x + w / 2 - 0.5
     let boxes = detections
         .iter()
         .filter(|d| d.object == object && d.bbox_xywh_px[2] > 1.0 && d.bbox_xywh_px[3] > 1.0)
         .map(|d| {
-            let [x, y, w, h] = d.bbox_xywh_px;
-            ([x + w / 2.0 - 0.5, y + h / 2.0 - 0.5], config.sigma_rel * w.max(h))
+            (
+                d.centre_px(),
+                config.sigma_rel * d.bbox_xywh_px[2].max(d.bbox_xywh_px[3]),
+            )
         });
     let d2 =
         |c: &[f64; 2], uv: &[f64; 2], sigma: f64| ((uv[0] - c[0]).powi(2) + (uv[1] - c[1]).powi(2)) / (sigma * sigma);
