@@ -424,11 +424,13 @@ fn near_box_entropy(near_blur: Option<NearBlur>) -> (f64, f64) {
             },
         )
         .unwrap();
+    // the best similarity of any step: a threshold above it is above every step's
+    let mut best = f64::MIN;
     for step in 0..5u64 {
         tracker.step(&frames(&cams, &scene, false, step), None).unwrap();
+        best = best.max(tracker.tracks()[0].best_similarity.unwrap());
     }
     let e = tracker.estimate(id).unwrap();
-    let best = tracker.tracks()[0].best_similarity.unwrap();
     (e.rotation_entropy, best)
 }
 
