@@ -149,9 +149,30 @@ impl TrackUpdate<'_> {
 
         // 1. crops and codes of every view that has a usable crop
         let mut encoded: Vec<Encoded> = Vec::new();
+        // each view's box term per particle (the detector's box of the object, where it has one)
+        let mut box_logs: Vec<Vec<f32>> = Vec::new();
         for (frame, view_from_ref, _ci) in views {
-            let positions = in_view(&self.state.positions, view_from_ref);
+            let positions: Vec<Vector3<f64>> = self
+                .state
+                .positions
+                .iter()
+                .map(|p| (view_from_ref * Point3::from(*p)).coords)
+                .collect();
             let mean_view = (view_from_ref * Point3::from(mean_ref)).coords;
+            if let Some(cfg) = &obs_cfg.detection_box {
+                let mut l = vec![0f32; n];
+                let object = &self.models[mi].name;
+                box_loglik(
+                    &frame.intrinsics,
+                    &frame.detections,
+                    object,
+                    &mean_view,
+                    &positions,
+                    cfg,
+                    &mut l,
+                );
+                box_logs.push(l);
+            }
             if let Some(uv) = frame.intrinsics.project(&Point3::from(mean_view))
                 && frame.intrinsics.contains(uv)
             {
@@ -339,19 +360,9 @@ impl TrackUpdate<'_> {
                 None => self.sims.push(sim),
             }
         }
-        // the detector's boxes, in every view that has one of the object
-        if let Some(cfg) = &obs_cfg.detection_box {
-            for (frame, view_from_ref, _) in views {
-                let mean_view = (view_from_ref * Point3::from(mean_ref)).coords;
-                box_loglik(
-                    &frame.intrinsics,
-                    &frame.detections,
-                    &self.models[mi].name,
-                    &mean_view,
-                    &in_view(&self.state.positions, view_from_ref),
-                    cfg,
-                    &mut position_log,
-                );
+        for l in &box_logs {
+            for (d, b) in position_log.iter_mut().zip(l) {
+                *d += b;
             }
         }
         report.timings.likelihoods_s += t0.elapsed().as_secs_f64();
@@ -1261,14 +1272,6 @@ fn unmatched_mass(
 }
 
 /// A mutex's guard, also after a panic elsewhere (the data is a track's own update).
-/// Positions of the reference frame seen from a view.
-fn in_view(positions: &[Vector3<f64>], view_from_ref: &Pose) -> Vec<Vector3<f64>> {
-    positions
-        .iter()
-        .map(|p| (view_from_ref * Point3::from(*p)).coords)
-        .collect()
-}
-
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
 }
