@@ -28,11 +28,13 @@ struct TrackedBox {
     tracker: Tracker,
 }
 
-/// The toy camera (160 x 120) sees the box at about 27 px, where the size weighting would keep
-/// the track broad for many steps; these tests are about snapshots of a converged one.
+/// The toy camera (160 x 120) sees the box at about 27 px, where the size weighting (by area or
+/// by diameter) would keep the track broad for many steps; these tests are about snapshots of
+/// a converged one.
 fn config() -> TrackerConfig {
     let mut config = TrackerConfig::default();
     config.observation.full_size_px = 0.0;
+    config.observation.full_area_px = 0.0;
     config
 }
 

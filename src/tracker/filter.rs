@@ -383,6 +383,10 @@ impl TrackerConfig {
     }
 }
 
+/// Directions the mean silhouette of a model is measured over (20-60 ms for a YCB mesh of 5k
+/// triangles; the mean over 64 is within 0.2 % of that over 1,024 for all eight).
+const SILHOUETTE_DIRECTIONS: usize = 64;
+
 struct Model {
     name: String,
     mesh: Mesh,
@@ -400,6 +404,9 @@ struct Model {
     twin_partners: Vec<u32>,
     /// The support prior ([`TrackerConfig::support`]); `None` when off or for a flat mesh.
     support: Option<crate::tracker::support::SupportPrior>,
+    /// The mean area of the object's silhouette (m², [`observation::mean_silhouette_area_m2`]);
+    /// 0 unless [`observation::ObservationConfig::full_area_px`] reads it.
+    silhouette_m2: f64,
 }
 
 /// State of one track.
@@ -592,6 +599,11 @@ impl Tracker {
             crate::tracker::support::RestingFaces::of_mesh(&mesh, cfg.box_faces)
                 .map(|faces| crate::tracker::support::SupportPrior::new(&faces, &cfg))
         });
+        let silhouette_m2 = if self.config.observation.full_area_px > 0.0 {
+            crate::tracker::observation::mean_silhouette_area_m2(&mesh, SILHOUETTE_DIRECTIONS)
+        } else {
+            0.0
+        };
         if let Some(mi) = self.models.iter().position(|m| m.name == name) {
             // a better codebook for a known model: its tracks move to the new grid through
             // their compact snapshots (see `snapshot`), keeping particles and marginals
@@ -606,6 +618,7 @@ impl Tracker {
             m.twin_turns = twin_turns;
             m.twin_partners = twin_partners;
             m.support = support;
+            m.silhouette_m2 = silhouette_m2;
             m.mesh = mesh;
             m.codebook = codebook;
             m.tables = tables;
@@ -624,6 +637,7 @@ impl Tracker {
             twin_turns,
             twin_partners,
             support,
+            silhouette_m2,
         });
     }
 

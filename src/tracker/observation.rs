@@ -16,8 +16,9 @@
 //! of noise included (a far camera seeing a thin object through depth noise larger than the
 //! object), and multiplies that in at full strength. Measurements: `docs/decisions.md`
 //! ("Tracker: decisions moved from the code"). The filter also scales it by the object's
-//! apparent size ([`size_strength`]; "Issue 19, second round"); `observe_view`, a diagnostic
-//! of one view, does not.
+//! apparent size ([`size_strength`]; "Issue 19, second round"; by the pixels its silhouette
+//! covers when `full_area_px` is set, "Far views counted by the pixels the object covers");
+//! `observe_view`, a diagnostic of one view, does not.
 
 pub mod fuse;
 
@@ -60,9 +61,17 @@ pub struct ObservationConfig {
     /// view counts at full strength; below it the view's log-likelihood is scaled by
     /// `(size / full_size_px)^2`, the share of the pixels a full-size crop would have: a far,
     /// small object is upsampled into a crop that looks confident but holds few pixels.
-    /// 0: off.
+    /// Read only when [`Self::full_area_px`] is 0; 0 here too: no size weighting.
     #[serde(default = "default_full_size_px")]
     pub full_size_px: f32,
+    /// Apparent area (px², the object's mean silhouette over all directions at the particles'
+    /// mean depth, [`mean_silhouette_area_m2`]) from which a view counts at full strength;
+    /// below it the view's log-likelihood is scaled by `area / full_area_px`, the share of
+    /// the pixels a full-size crop would have. It counts a thin object (a banana) by the
+    /// pixels it covers, not by its length. 0 (the default; left out of the serialised
+    /// settings, so their hash is unchanged): off, [`Self::full_size_px`] applies instead.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub full_area_px: f32,
     /// The detector's boxes as evidence of where the object is ([`box_loglik`]); `None`: the
     /// boxes only start tracks and drive the recovery.
     #[serde(default = "default_detection_box")]
@@ -107,6 +116,7 @@ impl Default for ObservationConfig {
             depth_sigma_m: 0.015,
             depth_floor: -6.0,
             full_size_px: default_full_size_px(),
+            full_area_px: 0.0,
             detection_box: default_detection_box(),
         }
     }
@@ -158,13 +168,61 @@ pub fn object_size_px(codebook: &Codebook, intrinsics: &Intrinsics, depth_m: f64
     codebook.box_m() * intrinsics.fx() / depth_m.max(0.05)
 }
 
-/// How much of its log-likelihood a view counts with for an object `size_px` across (see
+/// How much of its log-likelihood a view counts with for an object `size_px` across that
+/// covers `area_px` pixels (see [`ObservationConfig::full_area_px`] and
 /// [`ObservationConfig::full_size_px`]).
-pub fn size_strength(size_px: f32, config: &ObservationConfig) -> f32 {
+pub fn size_strength(size_px: f32, area_px: f32, config: &ObservationConfig) -> f32 {
+    if config.full_area_px > 0.0 {
+        if !area_px.is_finite() {
+            return 1.0;
+        }
+        return (area_px / config.full_area_px).clamp(0.0, 1.0);
+    }
     if config.full_size_px <= 0.0 || !size_px.is_finite() {
         return 1.0;
     }
     (size_px / config.full_size_px).clamp(0.0, 1.0).powi(2)
+}
+
+/// The mean area (m²) of the silhouette of `mesh` over `n_directions` directions spread
+/// evenly over the sphere (a Fibonacci lattice), each rasterised at 128 px from 20 diameters
+/// away (near orthographic). For a convex body it is a quarter of its surface (Cauchy); a
+/// thin or hollow one covers less than its diameter suggests.
+pub fn mean_silhouette_area_m2(mesh: &crate::mesh::Mesh, n_directions: usize) -> f64 {
+    const SIDE_PX: u32 = 128;
+    let diameter_m = mesh.diameter_m();
+    if diameter_m.is_nan() || diameter_m <= 0.0 || n_directions == 0 {
+        return 0.0;
+    }
+    let distance_m = 20.0 * diameter_m;
+    // the diameter spans 100 px of the 128
+    let f_px = 100.0 * distance_m / diameter_m;
+    let Ok(k) = Intrinsics::from_focal(SIDE_PX, SIDE_PX, f_px) else {
+        return 0.0;
+    };
+    let centre = mesh.bounds().center_m();
+    let pixel_m2 = (distance_m / f_px).powi(2);
+    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+    let total: f64 = (0..n_directions)
+        .map(|i| {
+            let z = 1.0 - 2.0 * (i as f64 + 0.5) / n_directions as f64;
+            let r = (1.0 - z * z).max(0.0).sqrt();
+            let a = golden * i as f64;
+            let dir = Vector3::new(r * a.cos(), r * a.sin(), z);
+            let rotation = nalgebra::UnitQuaternion::rotation_between(&dir, &Vector3::z())
+                .unwrap_or_else(|| nalgebra::UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI));
+            let pose = crate::geometry::Pose::from_parts(
+                nalgebra::Translation3::from(Vector3::new(0.0, 0.0, distance_m) - rotation * centre),
+                rotation,
+            );
+            let covered = crate::render::raster::silhouette(mesh, &pose, &k)
+                .iter()
+                .filter(|c| **c)
+                .count();
+            covered as f64 * pixel_m2
+        })
+        .sum();
+    total / n_directions as f64
 }
 
 fn default_full_similarity() -> f32 {
@@ -173,6 +231,10 @@ fn default_full_similarity() -> f32 {
 
 fn default_full_size_px() -> f32 {
     90.0
+}
+
+fn is_zero(x: &f32) -> bool {
+    *x == 0.0
 }
 
 /// How much of its log-likelihood a view whose best similarity is `best` contributes (see
@@ -508,19 +570,41 @@ mod tests {
     fn small_far_objects_are_weaker_evidence() {
         let off = ObservationConfig {
             full_size_px: 0.0,
+            full_area_px: 0.0,
             ..Default::default()
         };
-        assert_eq!(size_strength(10.0, &off), 1.0, "0 turns it off");
+        assert_eq!(size_strength(10.0, 1.0, &off), 1.0, "0 and 0 turn it off");
         let c = ObservationConfig {
             full_size_px: 100.0,
             ..off
         };
-        assert_eq!(size_strength(100.0, &c), 1.0);
-        assert_eq!(size_strength(400.0, &c), 1.0);
+        assert_eq!(size_strength(100.0, 0.0, &c), 1.0);
+        assert_eq!(size_strength(400.0, 0.0, &c), 1.0);
         // half the size holds a quarter of the pixels
-        assert!((size_strength(50.0, &c) - 0.25).abs() < 1e-6);
-        assert!(size_strength(20.0, &c) < size_strength(40.0, &c));
-        assert_eq!(size_strength(f32::NAN, &c), 1.0);
+        assert!((size_strength(50.0, 0.0, &c) - 0.25).abs() < 1e-6);
+        assert!(size_strength(20.0, 0.0, &c) < size_strength(40.0, 0.0, &c));
+        assert_eq!(size_strength(f32::NAN, 0.0, &c), 1.0);
+        // by area, when set, whatever the diameter
+        let a = ObservationConfig {
+            full_area_px: 2000.0,
+            ..c
+        };
+        assert_eq!(size_strength(10.0, 4000.0, &a), 1.0);
+        assert!((size_strength(400.0, 500.0, &a) - 0.25).abs() < 1e-6);
+        assert_eq!(size_strength(10.0, f32::NAN, &a), 1.0);
+    }
+
+    #[test]
+    fn the_mean_silhouette_of_a_box_is_a_quarter_of_its_surface() {
+        // a convex body's mean projected area is a quarter of its surface (Cauchy)
+        let (x, y, z) = (0.2, 0.1, 0.05);
+        let mesh = crate::mesh::builtin_box([x, y, z], [[200; 3], [100; 3]]);
+        let expected = 2.0 * (x * y + y * z + x * z) / 4.0;
+        let got = mean_silhouette_area_m2(&mesh, 256);
+        assert!((got / expected - 1.0).abs() < 0.03, "{got} vs {expected}");
+        // a thin rod covers far less than its length squared suggests
+        let rod = crate::mesh::builtin_box([0.2, 0.01, 0.01], [[200; 3], [100; 3]]);
+        assert!(mean_silhouette_area_m2(&rod, 64) < 0.15 * mean_silhouette_area_m2(&mesh, 64));
     }
 
     #[test]

@@ -28,6 +28,8 @@ struct Encoded {
     dense_map: Option<(Arc<Vec<u32>>, UnitQuaternion<f64>)>,
     /// The object's diameter in pixels at the particles' mean depth.
     size_px: f32,
+    /// The object's mean silhouette in pixels there.
+    area_px: f32,
 }
 
 impl Encoded {
@@ -51,7 +53,7 @@ impl Encoded {
             config,
         )
         .map(|mut ev| {
-            let s = crate::tracker::observation::size_strength(self.size_px, config);
+            let s = crate::tracker::observation::size_strength(self.size_px, self.area_px, config);
             ev.k *= s;
             ev.floor *= s;
             ev
@@ -202,6 +204,8 @@ impl TrackUpdate<'_> {
                 q,
                 dense_map: None,
                 size_px: crate::tracker::observation::object_size_px(&codebook, &frame.intrinsics, mean_view.z) as f32,
+                area_px: (self.models[mi].silhouette_m2 * frame.intrinsics.fx() * frame.intrinsics.fy()
+                    / mean_view.z.max(0.05).powi(2)) as f32,
             });
         }
 
