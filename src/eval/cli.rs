@@ -132,6 +132,8 @@ pub fn tracker_config_with(overrides: &serde_json::Value) -> anyhow::Result<Trac
     let mut base = serde_json::to_value(TrackerConfig::default())?;
     let mut full = base.clone();
     full["support"] = serde_json::to_value(crate::tracker::support::SupportConfig::default())?;
+    // off by default and then left out of the settings (their hash stays that of the map)
+    full["observation"]["full_area_px"] = serde_json::json!(0.0);
     merge(&mut base, &full, overrides, "")?;
     serde_json::from_value(base).map_err(|e| anyhow::anyhow!("tracker config: {e}"))
 }
@@ -311,5 +313,19 @@ mod tests {
         );
         let unknown = tracker_config_with(&serde_json::json!({"twins": {"sharee": 0.1}}));
         assert!(unknown.unwrap_err().to_string().contains("twins.sharee"));
+    }
+
+    #[test]
+    fn the_area_weighting_off_by_default_can_be_named() {
+        let a = tracker_config_with(&serde_json::json!({"observation": {"full_area_px": 1000.0}})).expect("area");
+        assert_eq!(a.observation.full_area_px, 1000.0);
+        assert_eq!(a.observation.sigma, TrackerConfig::default().observation.sigma);
+        let off = serde_json::to_value(TrackerConfig::default()).unwrap();
+        assert!(
+            off["observation"].get("full_area_px").is_none(),
+            "off, it stays out of the settings"
+        );
+        let on = serde_json::to_value(a).unwrap();
+        assert_eq!(on["observation"]["full_area_px"], 1000.0);
     }
 }
