@@ -165,8 +165,17 @@ pub fn box_loglik(
 /// the range; a range under 5 cm counts as 5 cm): what the size weighting and the
 /// verification's near-view limit read.
 pub fn object_size_px(codebook: &Codebook, intrinsics: &Intrinsics, depth_m: f64) -> f64 {
-    codebook.box_m() * intrinsics.fx() / depth_m.max(0.05)
+    codebook.box_m() * intrinsics.fx() / depth_m.max(MIN_RANGE_M)
 }
+
+/// How many pixels a silhouette of `area_m2` covers in a view at `depth_m` (the same 5 cm
+/// floor on the range as [`object_size_px`]): what the area weighting reads.
+pub fn object_area_px(area_m2: f64, intrinsics: &Intrinsics, depth_m: f64) -> f64 {
+    area_m2 * intrinsics.fx() * intrinsics.fy() / depth_m.max(MIN_RANGE_M).powi(2)
+}
+
+/// The nearest range the apparent sizes are computed at.
+const MIN_RANGE_M: f64 = 0.05;
 
 /// How much of its log-likelihood a view counts with for an object `size_px` across that
 /// covers `area_px` pixels (see [`ObservationConfig::full_area_px`] and

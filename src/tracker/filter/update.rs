@@ -204,8 +204,11 @@ impl TrackUpdate<'_> {
                 q,
                 dense_map: None,
                 size_px: crate::tracker::observation::object_size_px(&codebook, &frame.intrinsics, mean_view.z) as f32,
-                area_px: (self.models[mi].silhouette_m2 * frame.intrinsics.fx() * frame.intrinsics.fy()
-                    / mean_view.z.max(0.05).powi(2)) as f32,
+                area_px: crate::tracker::observation::object_area_px(
+                    self.models[mi].silhouette_m2,
+                    &frame.intrinsics,
+                    mean_view.z,
+                ) as f32,
             });
         }
 
