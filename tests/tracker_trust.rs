@@ -466,16 +466,66 @@ fn near_well_matched_tracks_are_blurred_less() {
 /// axis passes 1 cm from the origin, and its body turned about that axis is the same surface
 /// 2 cm away with the handle on the other side.
 fn ycb_mug() -> pregrasp::mesh::Mesh {
+    ycb_mesh("025_mug")
+}
+
+/// A mesh of the shared folder (`../shared/ycb/NAME.ply`).
+fn ycb_mesh(name: &str) -> pregrasp::mesh::Mesh {
     let shared = std::env::var("PREGRASP_SHARED")
         .map(std::path::PathBuf::from)
         .unwrap_or_else(|_| std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared"));
-    pregrasp::mesh::Mesh::load(&shared.join("ycb/025_mug.ply")).expect("the mug in ../shared/ycb")
+    pregrasp::mesh::Mesh::load(&shared.join(format!("ycb/{name}.ply"))).unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+/// The track starts on `turn` of the truth (rotation and position of the turned joint pose,
+/// both confident) of `mesh` on a table, seen by `cams`. Returns the step (10 Hz) from which
+/// the position's error stayed below 1 cm, the rotation's densities at the truth and at the
+/// turned pose after twenty steps (2 s), and how many particles jumped to a twin pose.
+fn turned_start_of(
+    mesh: pregrasp::mesh::Mesh,
+    yaw_rad: f64,
+    turn: pregrasp::symmetry::CentredTurn,
+    cams: &[(&str, Pose)],
+    twins: Option<TwinConfig>,
+) -> (Option<u64>, f64, f64, usize) {
+    let config = TrackerConfig {
+        twins,
+        ..TrackerConfig::default()
+    };
+    let (mut tracker, scene, truth) = mesh_on_table("object", mesh, yaw_rad, cams, config);
+    let turned = Pose::from_parts(
+        (truth.translation.vector + turn.origin_shift(&truth.rotation)).into(),
+        truth.rotation * turn.rotation,
+    );
+    let id = tracker
+        .start_track(
+            "object",
+            &TrackPrior {
+                reference_from_object: turned,
+                translation_std_m: 0.004,
+                rotation_std_rad: Some(0.1),
+            },
+        )
+        .unwrap();
+    let mut placed_at = None;
+    let mut twinned = 0;
+    for step in 0..20u64 {
+        twinned += tracker.step(&frames(cams, &scene, false, step), None).unwrap().twinned;
+        let e = tracker.estimate(id).unwrap();
+        match (translation_error(&e.reference_from_object, &truth) < 0.01, placed_at) {
+            (true, None) => placed_at = Some(step),
+            (false, Some(_)) => placed_at = None,
+            _ => {}
+        }
+    }
+    let d = tracker
+        .rotation_densities(id, &[truth.rotation, turned.rotation], &[])
+        .unwrap();
+    (placed_at, d[0], d[1], twinned)
 }
 
 /// Three near cameras that see the mug's handle; the track starts on the mug's body turned about
-/// its own axis (rotation and position of the turned joint pose, both confident). Returns the
-/// step (10 Hz) from which the position's error stayed below 1 cm, and the rotation's densities
-/// at the truth and at the turned pose after twenty steps (2 s).
+/// its own axis.
 fn turned_start(twins: Option<TwinConfig>) -> (Option<u64>, f64, f64) {
     let mesh = ycb_mug();
     let turns = pregrasp::symmetry::confusable_turns(&mesh, 0.012 * mesh.diameter_m(), 0.005);
@@ -490,39 +540,8 @@ fn turned_start(twins: Option<TwinConfig>) -> (Option<u64>, f64, f64) {
         ("c", look_at([-0.3, 0.35, 0.3], [0.0, 0.0, 0.045])),
     ];
     // the handle away from camera a (whose view of the turned pose shows it) and side on to b
-    let config = TrackerConfig {
-        twins,
-        ..TrackerConfig::default()
-    };
-    let (mut tracker, scene, truth) = mesh_on_table("mug", mesh, 2.97, &cams, config);
-    let turned = Pose::from_parts(
-        (truth.translation.vector + turn.origin_shift(&truth.rotation)).into(),
-        truth.rotation * turn.rotation,
-    );
-    let id = tracker
-        .start_track(
-            "mug",
-            &TrackPrior {
-                reference_from_object: turned,
-                translation_std_m: 0.004,
-                rotation_std_rad: Some(0.1),
-            },
-        )
-        .unwrap();
-    let mut placed_at = None;
-    for step in 0..20u64 {
-        tracker.step(&frames(&cams, &scene, false, step), None).unwrap();
-        let e = tracker.estimate(id).unwrap();
-        match (translation_error(&e.reference_from_object, &truth) < 0.01, placed_at) {
-            (true, None) => placed_at = Some(step),
-            (false, Some(_)) => placed_at = None,
-            _ => {}
-        }
-    }
-    let d = tracker
-        .rotation_densities(id, &[truth.rotation, turned.rotation], &[])
-        .unwrap();
-    (placed_at, d[0], d[1])
+    let (at, truth, turned, _) = turned_start_of(mesh, 2.97, turn, &cams, twins);
+    (at, truth, turned)
 }
 
 #[test]
@@ -613,4 +632,65 @@ fn the_support_prior_keeps_a_track_resting_when_the_views_say_nothing() {
         eprintln!("{support:?} {normal:?}: resting {u:.3e} tipped {t:.3e}");
         assert!(u < 2.0 * t && t < 2.0 * u, "both alike: {u:.3e} {t:.3e}");
     }
+}
+
+/// The mustard bottle upside down and slid 3.5 cm along its axis: a confusable turn that moves
+/// its surface by 1.4 % of its diameter, past the twins' far limit (1.2 %).
+fn upside_down_mustard() -> (pregrasp::mesh::Mesh, pregrasp::symmetry::CentredTurn) {
+    let mesh = ycb_mesh("006_mustard_bottle");
+    let turns = pregrasp::symmetry::confusable_turns(&mesh, 0.021 * mesh.diameter_m(), 0.005);
+    let turn = turns
+        .iter()
+        .find(|t| {
+            t.rotation.axis().is_some_and(|a| a.z.abs() < 0.2)
+                && t.origin_shift(&UnitQuaternion::identity()).norm() > 0.02
+        })
+        .copied()
+        .unwrap_or_else(|| panic!("the bottle's upside-down turn: {turns:?}"));
+    assert!(
+        turn.trimmed_distance_m > 0.012 * mesh.diameter_m(),
+        "past the far limit: {turn:?}"
+    );
+    (mesh, turn)
+}
+
+#[test]
+fn near_twins_turn_the_mustard_bottle_over_only_where_a_view_sees_it_large() {
+    // the track starts on the bottle upside down; near views tell the faces apart (in this
+    // clean scene the registration and the views bring it back with or without twins)
+    let (mesh, turn) = upside_down_mustard();
+    let near_cams = [
+        ("a", look_at([0.45, -0.2, 0.35], [0.0, 0.0, 0.09])),
+        ("b", look_at([-0.15, -0.45, 0.3], [0.0, 0.0, 0.09])),
+        ("c", look_at([-0.3, 0.35, 0.35], [0.0, 0.0, 0.09])),
+    ];
+    let far_cams = [
+        ("a", look_at([2.4, -1.1, 1.4], [0.0, 0.0, 0.09])),
+        ("b", look_at([-0.8, -2.6, 1.3], [0.0, 0.0, 0.09])),
+    ];
+    let near = TwinConfig {
+        near_max_trimmed_rel: 0.021,
+        // the test's 160 x 120 views (focal 150 px) see the bottle about 50 px across from
+        // 0.6 m and 10 px from 3 m
+        near_min_object_px: 40.0,
+        max_entropy_rel: 0.95,
+        ..TwinConfig::default()
+    };
+    let (at, truth, turned, twinned) = turned_start_of(mesh.clone(), 0.7, turn, &near_cams, Some(near));
+    eprintln!(
+        "near twins, near views: placed from step {at:?}, density at the truth {truth:.3e}, at the turned pose {turned:.3e}, {twinned} twins"
+    );
+    assert!(twinned > 0, "near views: the upside-down turn's twins are made");
+    assert!(at.is_some_and(|s| s <= 12), "near twins: placed from step {at:?}");
+    assert!(truth > turned, "near twins: {truth:.3e} against {turned:.3e}");
+    // far views, or the far limit alone: no twin for this
+    // turn (the mustard bottle has none within the far limit)
+    let (_, _, _, far_twinned) = turned_start_of(mesh.clone(), 0.7, turn, &far_cams, Some(near));
+    assert_eq!(far_twinned, 0, "far views make no twins of the near turns");
+    let far_only = TwinConfig {
+        max_entropy_rel: 0.95,
+        ..TwinConfig::default()
+    };
+    let (_, _, _, none) = turned_start_of(mesh, 0.7, turn, &near_cams, Some(far_only));
+    assert_eq!(none, 0, "the far limit alone has no twin for the bottle");
 }

@@ -134,6 +134,8 @@ pub fn tracker_config_with(overrides: &serde_json::Value) -> anyhow::Result<Trac
     full["support"] = serde_json::to_value(crate::tracker::support::SupportConfig::default())?;
     // off by default and then left out of the settings (their hash stays that of the map)
     full["observation"]["full_area_px"] = serde_json::json!(0.0);
+    full["twins"]["near_max_trimmed_rel"] = serde_json::json!(0.0);
+    full["twins"]["near_min_object_px"] = serde_json::json!(0.0);
     merge(&mut base, &full, overrides, "")?;
     serde_json::from_value(base).map_err(|e| anyhow::anyhow!("tracker config: {e}"))
 }
@@ -327,5 +329,21 @@ mod tests {
         );
         let on = serde_json::to_value(a).unwrap();
         assert_eq!(on["observation"]["full_area_px"], 1000.0);
+    }
+
+    #[test]
+    fn the_near_twins_off_by_default_can_be_named() {
+        let a = tracker_config_with(
+            &serde_json::json!({"twins": {"near_max_trimmed_rel": 0.021, "near_min_object_px": 90.0}}),
+        )
+        .expect("near twins");
+        let tw = a.twins.expect("twins stay on");
+        assert_eq!((tw.near_max_trimmed_rel, tw.near_min_object_px), (0.021, 90.0));
+        assert_eq!(tw.share, crate::tracker::TwinConfig::default().share);
+        let off = serde_json::to_value(TrackerConfig::default()).unwrap();
+        assert!(
+            off["twins"].get("near_max_trimmed_rel").is_none() && off["twins"].get("near_min_object_px").is_none(),
+            "off, they stay out of the settings"
+        );
     }
 }

@@ -161,7 +161,8 @@ const TWIN_MIXED_TURN_RAD: f64 = 10.0 * std::f64::consts::PI / 180.0;
 /// by the turn's offset at the particle's top bin, the histogram turned. The views then weigh
 /// the twins as any particle, so a twin at the truth takes over within a few steps, and twins
 /// the views reject are resampled away (`docs/decisions.md`, "Twins for the mug's turned
-/// body"). Only the mug among the YCB objects has such a turn.
+/// body"). Only the mug among the YCB objects has such a turn within `max_trimmed_rel`; the
+/// bottles' and the drill's lie within `near_max_trimmed_rel` where it is named.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TwinConfig {
     /// Share of a track's particles that jump per turn and step.
@@ -176,6 +177,22 @@ pub struct TwinConfig {
     /// rotation the track does not know scatter its positions by the shift at random.
     #[serde(default = "default_twin_max_entropy_rel")]
     pub max_entropy_rel: f64,
+    /// Turns whose trimmed surface distance lies between `max_trimmed_rel` and this share of
+    /// the diameter get twins only in a step where a view sees the object at least
+    /// `near_min_object_px` across (0: no such turns). Such a turn (the bottles upside down
+    /// and slid along their axis) moves the surface by millimetres: a far view cannot tell it
+    /// from the truth, so its twins there only make the top mode a coin, while near they are
+    /// the way off a wrong face the far views chose.
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
+    pub near_max_trimmed_rel: f64,
+    /// See `near_max_trimmed_rel`: the object's size (pixels, [`crate::tracker::observation::object_size_px`])
+    /// at the track's mean in the nearest view of the step that holds the mean in its image.
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
+    pub near_min_object_px: f64,
+}
+
+fn is_zero_f64(x: &f64) -> bool {
+    *x == 0.0
 }
 
 fn default_twin_max_entropy_rel() -> f64 {
@@ -189,6 +206,8 @@ impl Default for TwinConfig {
             max_trimmed_rel: 0.012,
             min_shift_m: 0.005,
             max_entropy_rel: default_twin_max_entropy_rel(),
+            near_max_trimmed_rel: 0.0,
+            near_min_object_px: 0.0,
         }
     }
 }
@@ -648,7 +667,8 @@ impl Tracker {
             return Vec::new();
         };
         let mixed: Vec<UnitQuaternion<f64>> = mixed.iter().map(UnitQuaternion::from_matrix).collect();
-        crate::symmetry::confusable_turns_cached(mesh, tw.max_trimmed_rel * mesh.diameter_m(), tw.min_shift_m)
+        let max_rel = tw.max_trimmed_rel.max(tw.near_max_trimmed_rel);
+        crate::symmetry::confusable_turns_cached(mesh, max_rel * mesh.diameter_m(), tw.min_shift_m)
             .into_iter()
             .filter(|t| mixed.iter().all(|q| q.angle_to(&t.rotation) > TWIN_MIXED_TURN_RAD))
             .collect()
@@ -874,6 +894,14 @@ impl Tracker {
             }
         }
         report.timings.motion_s += t0.elapsed().as_secs_f64();
+        // poses of this step's views
+        let views: Vec<(&CameraFrame, Pose, usize)> = frames
+            .iter()
+            .filter_map(|f| {
+                let ci = self.camera_names.iter().position(|c| c == &f.camera)?;
+                Some((*f, self.view_from_reference(&f.camera, odometry)?, ci))
+            })
+            .collect();
         let t0 = Instant::now();
         let kernel = gaussian_kernel(self.config.blur_radius_bins, self.config.blur_sigma_bins);
         let matching = self.config.matching;
@@ -897,7 +925,11 @@ impl Tracker {
                     self.config.turn_share as f32,
                 );
                 if let Some(tw) = self.config.twins {
-                    make_twins(s, m, tables, &tw, &mut self.rng);
+                    let near = tw.near_min_object_px > 0.0 && {
+                        let mean = s.set(tables, self.config.spread).mean_position();
+                        nearest_view_px(&views, &mean, &m.codebook) >= tw.near_min_object_px
+                    };
+                    report.twinned += make_twins(s, m, tables, &tw, near, &mut self.rng);
                 }
                 // the halo's bins that stay near the floor go back to it: only the rest is
                 // matched at this step
@@ -907,15 +939,6 @@ impl Tracker {
             }
         }
         report.timings.blur_s += t0.elapsed().as_secs_f64();
-
-        // poses of this step's views
-        let views: Vec<(&CameraFrame, Pose, usize)> = frames
-            .iter()
-            .filter_map(|f| {
-                let ci = self.camera_names.iter().position(|c| c == &f.camera)?;
-                Some((*f, self.view_from_reference(&f.camera, odometry)?, ci))
-            })
-            .collect();
 
         // 2. detections
         for (frame, view_from_ref, ci) in &views {
@@ -1329,25 +1352,51 @@ fn floor_components(s: &mut TrackState, min_weight: f64) {
     normalise(&mut s.weights);
 }
 
+/// The object's size in pixels ([`crate::tracker::observation::object_size_px`]) at `mean`
+/// (reference frame) in the nearest of `views` whose image holds it; 0 when none does.
+fn nearest_view_px(views: &[(&CameraFrame, Pose, usize)], mean: &Vector3<f64>, codebook: &Codebook) -> f64 {
+    views
+        .iter()
+        .filter_map(|(frame, view_from_ref, _)| {
+            let p = view_from_ref * nalgebra::Point3::from(*mean);
+            let k = &frame.intrinsics;
+            let inside = k.project(&p).is_some_and(|uv| k.contains(uv));
+            inside.then(|| crate::tracker::observation::object_size_px(codebook, k, p.z))
+        })
+        .fold(0.0, f64::max)
+}
+
 /// Moves `share` of a track's particles (at least one) per off-centre turn of its model to
 /// their twin pose ([`TwinConfig`]): the histogram turned, the position shifted by the turn's
 /// offset at the particle's top bin. A track whose rotation is not known well enough has no
-/// pose to turn.
-fn make_twins(s: &mut TrackState, m: &Model, tables: &GridTables, tw: &TwinConfig, rng: &mut impl rand::Rng) {
+/// pose to turn. Returns how many particles moved.
+fn make_twins(
+    s: &mut TrackState,
+    m: &Model,
+    tables: &GridTables,
+    tw: &TwinConfig,
+    near: bool,
+    rng: &mut impl rand::Rng,
+) -> usize {
     let nt = m.twin_turns.len();
     let n = s.n();
     if nt == 0 || n < 2 || s.rot.active.is_empty() || tw.share <= 0.0 {
-        return;
+        return 0;
     }
     let uniform = (tables.grid.len() as f64).ln();
     if s.estimate
         .as_ref()
         .is_none_or(|e| e.rotation_entropy > tw.max_entropy_rel * uniform)
     {
-        return;
+        return 0;
     }
     let k = ((tw.share * n as f64).round() as usize).clamp(1, n / 2);
+    let far_limit_m = tw.max_trimmed_rel * m.codebook.diameter_m;
+    let mut moved = 0;
     for (j, turn) in m.twin_turns.iter().enumerate() {
+        if !near && turn.trimmed_distance_m > far_limit_m {
+            continue;
+        }
         // the turned column holds the parent's mass at `R * turn^-1` (it reads bin `b` at
         // `b * turn`): the twin is the pose turned by the inverse
         let inverse = crate::symmetry::CentredTurn {
@@ -1377,7 +1426,9 @@ fn make_twins(s: &mut TrackState, m: &Model, tables: &GridTables, tw: &TwinConfi
             s.positions[p] += inverse.origin_shift(&r_ref);
             s.rot.column_of[p] = turned[i];
         }
+        moved += chosen.len();
     }
+    moved
 }
 
 #[cfg(test)]

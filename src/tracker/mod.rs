@@ -229,6 +229,9 @@ pub struct StepReport {
     /// Tracks whose particles were weighed by their depth registration in this step.
     #[serde(default)]
     pub registered: usize,
+    /// Particles moved to a twin pose in this step (`TwinConfig`), summed over tracks.
+    #[serde(default)]
+    pub twinned: usize,
 }
 
 /// Seconds spent per stage in one step (summed over objects).
@@ -267,6 +270,7 @@ impl StepReport {
             audit_outside,
             verified,
             registered,
+            twinned,
         } = other;
         self.tracks_created.extend(tracks_created);
         self.tracks_reinitialised.extend(tracks_reinitialised);
@@ -278,6 +282,7 @@ impl StepReport {
         self.audit_outside += audit_outside;
         self.verified += verified;
         self.registered += registered;
+        self.twinned += twinned;
     }
 }
 
