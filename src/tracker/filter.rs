@@ -183,16 +183,12 @@ pub struct TwinConfig {
     /// and slid along their axis) moves the surface by millimetres: a far view cannot tell it
     /// from the truth, so its twins there only make the top mode a coin, while near they are
     /// the way off a wrong face the far views chose.
-    #[serde(default, skip_serializing_if = "is_zero_f64")]
+    #[serde(default, skip_serializing_if = "crate::tracker::observation::is_zero")]
     pub near_max_trimmed_rel: f64,
     /// See `near_max_trimmed_rel`: the object's size (pixels, [`crate::tracker::observation::object_size_px`])
     /// at the track's mean in the nearest view of the step that holds the mean in its image.
-    #[serde(default, skip_serializing_if = "is_zero_f64")]
+    #[serde(default, skip_serializing_if = "crate::tracker::observation::is_zero")]
     pub near_min_object_px: f64,
-}
-
-fn is_zero_f64(x: &f64) -> bool {
-    *x == 0.0
 }
 
 fn default_twin_max_entropy_rel() -> f64 {
@@ -402,8 +398,8 @@ impl TrackerConfig {
     }
 }
 
-/// Directions the mean silhouette of a model is measured over: enough that more change nothing
-/// that matters ("Far views counted by the pixels the object covers").
+/// Directions the mean silhouette of a model is averaged over: few enough to measure once per
+/// model, enough that the mean stands for every direction.
 const SILHOUETTE_DIRECTIONS: usize = 64;
 
 struct Model {

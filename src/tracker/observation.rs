@@ -242,8 +242,9 @@ fn default_full_size_px() -> f32 {
     90.0
 }
 
-fn is_zero(x: &f32) -> bool {
-    *x == 0.0
+/// Whether a setting is at zero, its "off" (left out of the serialised settings then).
+pub(crate) fn is_zero<T: Default + PartialEq>(x: &T) -> bool {
+    *x == T::default()
 }
 
 /// How much of its log-likelihood a view whose best similarity is `best` contributes (see
