@@ -80,6 +80,11 @@ pub struct TruthPlace {
     /// as spread as uniform); `None` in runs written before it was recorded.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rotation_entropy_ratio: Option<f64>,
+    /// The error the distribution expects of the estimate's rotation: the mean angle (deg, up
+    /// to the object's exact symmetries) from the estimate to the samples. Calibrated, its
+    /// mean over frames matches that of `symmetric_error_deg`; `None` in older runs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rotation_expected_error_deg: Option<f64>,
 }
 
 impl TruthPlace {
@@ -108,6 +113,11 @@ pub struct RotationTrust {
     pub median_volume_90_sr_rad: f64,
     /// Median over frames of ln(density at the truth / uniform's).
     pub median_log_density: f64,
+    /// Mean over frames of the error the distribution expects of its estimate
+    /// ([`TruthPlace::rotation_expected_error_deg`]); beside the row's mean
+    /// `symmetric_error_deg` it says whether the spread in degrees covers the error.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mean_expected_error_deg: Option<f64>,
 }
 
 /// The translation part of a [`TrustRow`].
@@ -176,6 +186,11 @@ impl TrustRow {
                 median_volume_90_so3_fraction: vol,
                 median_volume_90_sr_rad: vol * super::trust::SO3_VOLUME_SR_RAD,
                 median_log_density: median(places.iter().map(|p| p.rotation_log_density).collect())?,
+                mean_expected_error_deg: places
+                    .iter()
+                    .map(|p| p.rotation_expected_error_deg)
+                    .sum::<Option<f64>>()
+                    .map(|s| s / n),
             },
             translation: (!translation.is_empty()).then(|| TranslationTrust {
                 truth_in_50: translation.iter().map(|t| t.0).sum::<f64>() / tn,
@@ -205,6 +220,11 @@ impl TrustRow {
                 median_volume_90_so3_fraction: m(&|r| r.rotation.median_volume_90_so3_fraction),
                 median_volume_90_sr_rad: m(&|r| r.rotation.median_volume_90_sr_rad),
                 median_log_density: m(&|r| r.rotation.median_log_density),
+                mean_expected_error_deg: rows
+                    .iter()
+                    .map(|r| r.rotation.mean_expected_error_deg)
+                    .sum::<Option<f64>>()
+                    .map(|s| s / n),
             },
             translation: (!t.is_empty()).then(|| TranslationTrust {
                 truth_in_50: tm(&|r| r.truth_in_50),
@@ -553,19 +573,20 @@ impl Results {
                  a uniform distribution scores 0.5 / 0.9), the median volume of the 90 % region (rotation: \
                  fraction of SO(3), uniform 0.9; translation: cm^3), and the share of frames whose true \
                  rotation is less likely than under a uniform distribution (confidently wrong). Rotations \
-                 modulo the exact (shape and colour) symmetries.\n"
+                 modulo the exact (shape and colour) symmetries; `expected` is the mean angle from the \
+                 estimate to the distribution's samples, which a calibrated tracker matches with `sym.`\n"
             );
             let _ = writeln!(
                 s,
-                "| object | frames | rot. in 50 | rot. in 90 | rot. vol. 90 (SO(3)) | transl. in 50 | transl. in 90 | transl. vol. 90 (cm^3) | confidently wrong | below uniform | sym. (deg) | shape sym. (deg) |"
+                "| object | frames | rot. in 50 | rot. in 90 | rot. vol. 90 (SO(3)) | transl. in 50 | transl. in 90 | transl. vol. 90 (cm^3) | confidently wrong | below uniform | sym. (deg) | expected (deg) | shape sym. (deg) |"
             );
-            let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|");
+            let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
             for r in self.objects.iter().chain(std::iter::once(&self.mean)) {
                 let Some(t) = &r.trust else { continue };
                 let tr = t.translation.as_ref();
                 let _ = writeln!(
                     s,
-                    "| {} | {} | {:.3} | {:.3} | {:.2e} | {} | {} | {} | {:.3} | {:.3} | {} | {} |",
+                    "| {} | {} | {:.3} | {:.3} | {:.2e} | {} | {} | {} | {:.3} | {:.3} | {} | {} | {} |",
                     r.name,
                     t.frames,
                     t.rotation.truth_in_50,
@@ -577,6 +598,7 @@ impl Results {
                     t.confidently_wrong,
                     t.below_uniform,
                     fmt(r.symmetric_error_deg, 2),
+                    fmt(t.rotation.mean_expected_error_deg, 2),
                     fmt(r.shape_symmetric_error_deg, 2),
                 );
             }
@@ -842,7 +864,30 @@ mod tests {
             translation_truth_in_90: translation.map(|_| 1.0),
             translation_volume_90_m3: translation,
             rotation_entropy_ratio: None,
+            rotation_expected_error_deg: None,
         }
+    }
+
+    #[test]
+    fn the_expected_error_is_averaged_only_over_frames_that_all_have_it() {
+        let a = TruthPlace {
+            rotation_expected_error_deg: Some(10.0),
+            ..place(1.0, 1.0, 1.0, 0.1, None)
+        };
+        let b = TruthPlace {
+            rotation_expected_error_deg: Some(30.0),
+            ..place(1.0, 1.0, 1.0, 0.1, None)
+        };
+        let old = place(1.0, 1.0, 1.0, 0.1, None);
+        let row = TrustRow::from_places(&[&a, &b]).expect("frames");
+        assert_eq!(row.rotation.mean_expected_error_deg, Some(20.0));
+        let mixed = TrustRow::from_places(&[&a, &old]).expect("frames");
+        assert_eq!(
+            mixed.rotation.mean_expected_error_deg, None,
+            "an older run's frames have none"
+        );
+        let mean = TrustRow::mean_of(&[&row, &row]).expect("rows");
+        assert_eq!(mean.rotation.mean_expected_error_deg, Some(20.0));
     }
 
     #[test]

@@ -435,6 +435,7 @@ pub fn evaluate_sequence(
                             est,
                             t,
                             &model.orbit,
+                            &model.symmetries,
                             cfg.trust_samples,
                             &mut trust_rng,
                         ),
@@ -518,6 +519,7 @@ fn truth_place(
     est: &crate::tracker::Estimate,
     truth: &Pose,
     orbit: &[nalgebra::UnitQuaternion<f64>],
+    symmetries: &Symmetries,
     n: usize,
     rng: &mut rand_chacha::ChaCha8Rng,
 ) -> Option<TruthPlace> {
@@ -530,6 +532,14 @@ fn truth_place(
     rotations.extend(samples.poses.iter().map(|p| p.rotation));
     let densities = tracker.rotation_densities(track_id, &rotations, orbit)?;
     let rotation = RegionScore::from_samples(densities[0], &densities[1..])?;
+    let expected_error_deg = (!samples.poses.is_empty()).then(|| {
+        let sum: f64 = samples
+            .poses
+            .iter()
+            .map(|p| symmetries.error_deg(&est.reference_from_object.rotation, &p.rotation))
+            .sum();
+        sum / samples.poses.len() as f64
+    });
     let translation = GaussianMixture::from_components(&est.components)
         .and_then(|g| g.region_score(&truth.translation.vector, n, rng));
     Some(TruthPlace {
@@ -544,6 +554,7 @@ fn truth_place(
             .uniform_rotation_entropy(track_id)
             .filter(|u| *u > 0.0)
             .map(|u| est.rotation_entropy / u),
+        rotation_expected_error_deg: expected_error_deg,
     })
 }
 
