@@ -429,16 +429,7 @@ pub fn evaluate_sequence(
                         add_s_m: model.points.add_s_m(e, t),
                         rotation_entropy: est.rotation_entropy,
                         shape_symmetric_error_deg: Some(model.shape_symmetries.error_deg(&e.rotation, &t.rotation)),
-                        truth_place: truth_place(
-                            &tracker,
-                            *track_id,
-                            est,
-                            t,
-                            &model.orbit,
-                            &model.symmetries,
-                            cfg.trust_samples,
-                            &mut trust_rng,
-                        ),
+                        truth_place: truth_place(&tracker, *track_id, est, t, model, cfg.trust_samples, &mut trust_rng),
                         estimate_xyzw: Some({
                             let q = e.rotation.quaternion();
                             [q.i, q.j, q.k, q.w]
@@ -511,15 +502,15 @@ pub fn evaluate_sequence(
 }
 
 /// The truth's place in a track's distribution (`eval::trust`): the rotation marginal's
-/// density at the truth and at `n` samples of the track (modulo `orbit`), and the
-/// translation mixture's. `None` when `n` is 0 or the track has no particles.
+/// density at the truth and at `n` samples of the track (modulo the model's orbit), the
+/// translation mixture's, and the error the samples expect of the estimate. `None` when `n`
+/// is 0 or the track has no particles.
 fn truth_place(
     tracker: &Tracker,
     track_id: u64,
     est: &crate::tracker::Estimate,
     truth: &Pose,
-    orbit: &[nalgebra::UnitQuaternion<f64>],
-    symmetries: &Symmetries,
+    model: &Model,
     n: usize,
     rng: &mut rand_chacha::ChaCha8Rng,
 ) -> Option<TruthPlace> {
@@ -530,13 +521,17 @@ fn truth_place(
     let mut rotations = Vec::with_capacity(samples.poses.len() + 1);
     rotations.push(truth.rotation);
     rotations.extend(samples.poses.iter().map(|p| p.rotation));
-    let densities = tracker.rotation_densities(track_id, &rotations, orbit)?;
+    let densities = tracker.rotation_densities(track_id, &rotations, &model.orbit)?;
     let rotation = RegionScore::from_samples(densities[0], &densities[1..])?;
     let expected_error_deg = (!samples.poses.is_empty()).then(|| {
         let sum: f64 = samples
             .poses
             .iter()
-            .map(|p| symmetries.error_deg(&est.reference_from_object.rotation, &p.rotation))
+            .map(|p| {
+                model
+                    .symmetries
+                    .error_deg(&est.reference_from_object.rotation, &p.rotation)
+            })
             .sum();
         sum / samples.poses.len() as f64
     });
