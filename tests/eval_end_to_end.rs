@@ -190,6 +190,14 @@ fn eval_writes_results_and_multi_view_beats_a_blind_robot_camera() {
         assert!(json["objects"][0]["trust"]["rotation"].get(k).is_some(), "{k}");
     }
     assert!(json["mean"]["trust"]["confidently_wrong"].is_number());
+    // The error the distribution expects of its estimate follows its spread: a wide one (a 90 %
+    // region of most of SO(3), as these few far frames leave it) expects tens of degrees, a
+    // tight one a few; the estimate being one of its modes, below a uniform distribution's 126.5.
+    let expected = trust.rotation.mean_expected_error_deg.expect("expected error");
+    let wide = trust.rotation.median_volume_90_so3_fraction > 0.5;
+    assert!(expected > 0.0 && expected < 126.5, "{trust:?}");
+    assert!(if wide { expected > 45.0 } else { expected < 90.0 }, "{trust:?}");
+    assert!(json["objects"][0]["trust"]["rotation"]["mean_expected_error_deg"].is_number());
     // The box's exact symmetries (its turn about x) are a subset of its shape's (three
     // turns): the error modulo the exact ones is never below the error modulo the shape's.
     let (sym, shape) = (
