@@ -186,11 +186,7 @@ impl TrustRow {
                 median_volume_90_so3_fraction: vol,
                 median_volume_90_sr_rad: vol * super::trust::SO3_VOLUME_SR_RAD,
                 median_log_density: median(places.iter().map(|p| p.rotation_log_density).collect())?,
-                mean_expected_error_deg: places
-                    .iter()
-                    .map(|p| p.rotation_expected_error_deg)
-                    .sum::<Option<f64>>()
-                    .map(|s| s / n),
+                mean_expected_error_deg: mean_if_all(places.iter().map(|p| p.rotation_expected_error_deg)),
             },
             translation: (!translation.is_empty()).then(|| TranslationTrust {
                 truth_in_50: translation.iter().map(|t| t.0).sum::<f64>() / tn,
@@ -220,11 +216,7 @@ impl TrustRow {
                 median_volume_90_so3_fraction: m(&|r| r.rotation.median_volume_90_so3_fraction),
                 median_volume_90_sr_rad: m(&|r| r.rotation.median_volume_90_sr_rad),
                 median_log_density: m(&|r| r.rotation.median_log_density),
-                mean_expected_error_deg: rows
-                    .iter()
-                    .map(|r| r.rotation.mean_expected_error_deg)
-                    .sum::<Option<f64>>()
-                    .map(|s| s / n),
+                mean_expected_error_deg: mean_if_all(rows.iter().map(|r| r.rotation.mean_expected_error_deg)),
             },
             translation: (!t.is_empty()).then(|| TranslationTrust {
                 truth_in_50: tm(&|r| r.truth_in_50),
@@ -287,6 +279,13 @@ pub struct MetricRow {
     /// volumes, `confidently_wrong`), over the frames with an estimate.
     #[serde(default)]
     pub trust: Option<TrustRow>,
+}
+
+/// The mean of values that are all present (`None` when any is missing, as in frames of
+/// runs written before the value was recorded, or when there are none).
+fn mean_if_all(values: impl Iterator<Item = Option<f64>>) -> Option<f64> {
+    let v: Vec<f64> = values.collect::<Option<_>>()?;
+    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
 }
 
 fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
