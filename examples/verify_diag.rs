@@ -36,13 +36,19 @@ fn main() -> anyhow::Result<()> {
     let max_range_m = arg(4, f64::INFINITY)?;
     let config = VerificationConfig {
         depth_sigma_m: arg(5, VerificationConfig::default().depth_sigma_m)?,
+        max_side_px: std::env::var("MAX_SIDE").map_or(Ok(VerificationConfig::default().max_side_px), |s| s.parse())?,
         ..VerificationConfig::default()
     };
     let use_box = arg(6, 1.0)? > 0.0;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
     let normal = Normal::new(0.0, 1.0)?;
-    let turns =
-        [Vector3::x(), Vector3::y(), Vector3::z()].map(|a| UnitQuaternion::from_scaled_axis(a * std::f64::consts::PI));
+    // `TURN_DEG` (default 180): the turns' angle; `REGISTER=1`: every hypothesis is first
+    // registered to the view's depth over its translation, as `register_modes` does
+    let turn_rad = std::env::var("TURN_DEG")
+        .map_or(Ok(180.0), |s| s.parse::<f64>())?
+        .to_radians();
+    let register = std::env::var("REGISTER").is_ok_and(|s| s == "1");
+    let turns = [Vector3::x(), Vector3::y(), Vector3::z()].map(|a| UnitQuaternion::from_scaled_axis(a * turn_rad));
     let (mut all_wins, mut all_n) = ([0usize; 3], 0usize);
     for seq_dir in find_sequences(std::path::Path::new(&dir))? {
         let seq = Sequence::open(&seq_dir)?;
@@ -87,6 +93,17 @@ fn main() -> anyhow::Result<()> {
                     None
                 };
                 let depth = seq.load_depth(camera, f)?;
+                if register {
+                    pregrasp::tracker::verify::register_hypotheses(
+                        &mesh,
+                        &meta.intrinsics,
+                        &depth,
+                        &mut hypotheses,
+                        diameter_m,
+                        (5f64.to_radians()).powi(2) / 12.0,
+                        &pregrasp::tracker::register::RegistrationConfig::default(),
+                    );
+                }
                 let view = DepthView {
                     intrinsics: &meta.intrinsics,
                     depth: &depth,

@@ -136,6 +136,7 @@ pub fn tracker_config_with(overrides: &serde_json::Value) -> anyhow::Result<Trac
     full["observation"]["full_area_px"] = serde_json::json!(0.0);
     full["twins"]["near_max_trimmed_rel"] = serde_json::json!(0.0);
     full["twins"]["near_min_object_px"] = serde_json::json!(0.0);
+    full["verification"]["register_modes"] = serde_json::json!(false);
     merge(&mut base, &full, overrides, "")?;
     serde_json::from_value(base).map_err(|e| anyhow::anyhow!("tracker config: {e}"))
 }
@@ -344,6 +345,21 @@ mod tests {
         assert!(
             off["twins"].get("near_max_trimmed_rel").is_none() && off["twins"].get("near_min_object_px").is_none(),
             "off, they stay out of the settings"
+        );
+    }
+
+    #[test]
+    fn the_registered_verification_off_by_default_can_be_named() {
+        let a = tracker_config_with(&serde_json::json!({
+            "verification": {"min_mode_mass": 0.1, "register_modes": true, "max_side_px": 128}
+        }))
+        .expect("registered verification");
+        assert!(a.verification.register_modes);
+        assert_eq!((a.verification.min_mode_mass, a.verification.max_side_px), (0.1, 128));
+        let off = serde_json::to_value(TrackerConfig::default()).unwrap();
+        assert!(
+            off["verification"].get("register_modes").is_none(),
+            "off, it stays out of the settings"
         );
     }
 }

@@ -660,10 +660,22 @@ impl TrackUpdate<'_> {
                 .iter()
                 .find(|d| d.object == model.name && self.detection_holds(frame, d, view_from_ref))
                 .map(|d| d.bbox_xywh_px);
-            let poses: Vec<Pose> = modes
+            let mut poses: Vec<Pose> = modes
                 .iter()
                 .map(|q| view_from_ref * Pose::from_parts(mean_ref, *q))
                 .collect();
+            if cfg.register_modes {
+                let rotation_var = model.tables.grid.step_rad().powi(2) / 12.0;
+                crate::tracker::verify::register_hypotheses(
+                    &model.mesh,
+                    &frame.intrinsics,
+                    &frame.depth,
+                    &mut poses,
+                    model.codebook.diameter_m,
+                    rotation_var,
+                    &self.config.registration,
+                );
+            }
             let view = crate::tracker::verify::DepthView {
                 intrinsics: &frame.intrinsics,
                 depth: &frame.depth,
