@@ -474,6 +474,12 @@ pub struct SequenceSummary {
     pub matched_bins_per_step: f64,
     #[serde(default)]
     pub active_bins_per_step: f64,
+    /// Track steps whose rotation modes were checked against the images, and the seconds the
+    /// checks took (the step's `verification` stage).
+    #[serde(default)]
+    pub verified: usize,
+    #[serde(default)]
+    pub verification_s: f64,
 }
 
 /// `results.json`.

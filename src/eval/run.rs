@@ -364,6 +364,7 @@ pub fn evaluate_sequence(
         .collect();
     let plan = &plan[..cfg.max_frames.map_or(plan.len(), |m| m.min(plan.len()))];
     let (mut step_s, mut audited, mut audit_outside) = (0.0, 0, 0);
+    let (mut verified, mut verification_s) = (0, 0.0);
     let (mut matched_sum, mut active_sum) = (0usize, 0usize);
     for &(frame_id, stamp_ns) in plan {
         let frames = frames_of_step(seq, &cameras, frame_id, cfg.detection_seed)?;
@@ -382,6 +383,8 @@ pub fn evaluate_sequence(
             .map_err(|e| EvalError::Tracker(e.to_string()))?;
         step_s += t_step.elapsed().as_secs_f64();
         audited += rep.audited;
+        verified += rep.verified;
+        verification_s += rep.timings.verification_s;
         audit_outside += rep.audit_outside;
         matched_sum += rep.matched_bins;
         active_sum += rep.active_bins;
@@ -492,6 +495,8 @@ pub fn evaluate_sequence(
         audit_outside,
         matched_bins_per_step: matched_sum as f64 / plan.len().max(1) as f64,
         active_bins_per_step: active_sum as f64 / plan.len().max(1) as f64,
+        verified,
+        verification_s,
     };
     Ok(SequenceOutcome {
         summary,
@@ -751,6 +756,16 @@ pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>
     let step_s: f64 = results.sequences.iter().map(|s| s.step_s).sum();
     if frames > 0 {
         settings.insert("step_s_per_frame".into(), (step_s / frames as f64).into());
+    }
+    // the mode verification's cost per track step it ran in, and how often it ran
+    let verified: usize = results.sequences.iter().map(|s| s.verified).sum();
+    if verified > 0 {
+        let verification_s: f64 = results.sequences.iter().map(|s| s.verification_s).sum();
+        settings.insert("verified_track_steps".into(), verified.into());
+        settings.insert(
+            "verification_ms_per_verified_step".into(),
+            (1e3 * verification_s / verified as f64).into(),
+        );
     }
     let audited: usize = results.sequences.iter().map(|s| s.audited).sum();
     if audited > 0 {
