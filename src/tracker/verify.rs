@@ -436,7 +436,7 @@ mod tests {
     }
 
     #[test]
-    fn a_mug_turned_about_its_body_is_told_apart_only_where_each_mode_fits() {
+    fn each_mode_of_a_turned_mug_is_scored_where_it_fits() {
         // the built-in mug with its origin moved 1.2 cm towards the handle (as the YCB mesh's
         // box centre is): turned by 136 degrees about its body axis, the mug fits the same
         // body 2.2 cm away, which is where a track's particles may sit
@@ -455,7 +455,8 @@ mod tests {
         // the twin's body where the truth's is: t' = t + R (c - turn c)
         let twin_t = truth.translation.vector + rotation * (body_axis - turn * body_axis);
         assert!((twin_t - truth.translation.vector).norm() > 0.02);
-        // the track sits at the twin's place; both modes are scored there
+        // the track sits at the twin's place: scored there, the true rotation pays for the
+        // slide back to where it fits
         let at_twin = |q: UnitQuaternion<f64>| Pose::from_parts(Translation3::from(twin_t), q);
         let view = DepthView {
             intrinsics: &k,
