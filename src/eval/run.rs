@@ -757,24 +757,29 @@ pub fn run_all(data: &Path, out: &Path, cfg: &EvalConfig, compare: Option<&Path>
     if frames > 0 {
         settings.insert("step_s_per_frame".into(), (step_s / frames as f64).into());
     }
-    // the mode verification's cost per track step it ran in, and how often it ran
-    let verified: usize = results.sequences.iter().map(|s| s.verified).sum();
-    if verified > 0 {
-        let verification_s: f64 = results.sequences.iter().map(|s| s.verification_s).sum();
-        settings.insert("verified_track_steps".into(), verified.into());
-        settings.insert(
-            "verification_ms_per_verified_step".into(),
-            (1e3 * verification_s / verified as f64).into(),
-        );
-    }
-    let audited: usize = results.sequences.iter().map(|s| s.audited).sum();
-    if audited > 0 {
-        let outside: usize = results.sequences.iter().map(|s| s.audit_outside).sum();
-        settings.insert("audited_track_steps".into(), audited.into());
-        settings.insert(
-            "dense_argmax_outside_matched".into(),
-            (outside as f64 / audited as f64).into(),
-        );
+    // track steps counted per sequence, each beside a rate of them (absent when none ran):
+    // the mode verification's cost per step it ran in, and the dense audit's misses
+    let sum = |f: fn(&SequenceSummary) -> f64| results.sequences.iter().map(f).sum::<f64>();
+    let (verified, audited) = (sum(|s| s.verified as f64), sum(|s| s.audited as f64));
+    let counted = [
+        (
+            "verified_track_steps",
+            verified,
+            "verification_ms_per_verified_step",
+            1e3 * sum(|s| s.verification_s) / verified.max(1.0),
+        ),
+        (
+            "audited_track_steps",
+            audited,
+            "dense_argmax_outside_matched",
+            sum(|s| s.audit_outside as f64) / audited.max(1.0),
+        ),
+    ];
+    for (count_key, count, rate_key, rate) in counted {
+        if count > 0.0 {
+            settings.insert(count_key.into(), (count as usize).into());
+            settings.insert(rate_key.into(), rate.into());
+        }
     }
     // the matching's shape: three views of the robot camera's and two external cameras' particles
     let rows = 3 * (tc.particles_from_robot_camera + 2 * tc.particles_per_external_camera).max(1);
