@@ -284,11 +284,11 @@ pub struct MetricRow {
 /// The mean of values that are all present (`None` when any is missing, as in frames of
 /// runs written before the value was recorded, or when there are none).
 fn mean_if_all(values: impl Iterator<Item = Option<f64>>) -> Option<f64> {
-    let v: Vec<f64> = values.collect::<Option<_>>()?;
-    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+    mean(values.collect::<Option<Vec<f64>>>()?.into_iter())
 }
 
-fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
+/// The mean of the finite values (`None` when there are none).
+pub(crate) fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
     let (mut s, mut n) = (0.0, 0usize);
     for v in values.filter(|v| v.is_finite()) {
         s += v;

@@ -528,18 +528,11 @@ fn truth_place(
     rotations.extend(samples.poses.iter().map(|p| p.rotation));
     let densities = tracker.rotation_densities(track_id, &rotations, &model.orbit)?;
     let rotation = RegionScore::from_samples(densities[0], &densities[1..])?;
-    let expected_error_deg = (!samples.poses.is_empty()).then(|| {
-        let sum: f64 = samples
-            .poses
-            .iter()
-            .map(|p| {
-                model
-                    .symmetries
-                    .error_deg(&est.reference_from_object.rotation, &p.rotation)
-            })
-            .sum();
-        sum / samples.poses.len() as f64
-    });
+    let expected_error_deg = super::report::mean(samples.poses.iter().map(|p| {
+        model
+            .symmetries
+            .error_deg(&est.reference_from_object.rotation, &p.rotation)
+    }));
     let translation = GaussianMixture::from_components(&est.components)
         .and_then(|g| g.region_score(&truth.translation.vector, n, rng));
     Some(TruthPlace {
