@@ -734,3 +734,64 @@ fn the_reference_camera_sees_a_track_only_in_frames_that_show_it() {
     }
     assert_eq!(seen, [true, true, true, true, false, false, true]);
 }
+
+/// A mug 20 px across, 1 m away: a particle 2 cm to the side crops it a few pixels off centre,
+/// and its code is another view's; aimed at the detector's box (at each particle's own depth),
+/// every particle's crop is the mug's own (`observation.box_crops_below_px`).
+#[test]
+fn crops_aimed_at_the_box_read_a_small_far_mug_as_its_own_crop() {
+    use pregrasp::tracker::observation::{ViewImage, box_aimed, encode_particles, nearest_box, object_size_px};
+    // the origin moved to the box's centre, as the YCB meshes have it
+    let mut mesh = pregrasp::mesh::builtin("mug").unwrap();
+    let b = mesh.bounds();
+    let c = (b.min_m + b.max_m) * 0.5;
+    for v in &mut mesh.vertices_m {
+        for k in 0..3 {
+            v[k] -= c[k] as f32;
+        }
+    }
+    let cb = coarse_codebook(&mesh);
+    let world_from_mug = on_table(&mesh, 0.0, 0.0, 0.5);
+    let scene = Scene::new(vec![("mug".into(), mesh.clone(), world_from_mug)]);
+    let cam = look_at([0.0, -1.0, 0.35], [0.0, 0.0, 0.045]);
+    let f = frame("a", &cam, &scene, true, true, 0.01, 3);
+    let truth = (cam.inverse() * world_from_mug).translation.vector;
+    let k = &f.intrinsics;
+    assert!(object_size_px(&cb, k, truth.z) < 30.0, "a small mug");
+    let positions: Vec<Vector3<f64>> = [
+        Vector3::zeros(),
+        Vector3::new(0.02, 0.0, 0.0),
+        Vector3::new(0.0, -0.02, 0.0),
+        Vector3::new(-0.015, 0.015, 0.05),
+    ]
+    .iter()
+    .map(|o| truth + o)
+    .collect();
+    let img = ViewImage {
+        intrinsics: k,
+        depth: &f.depth,
+        color: f.color.as_ref(),
+    };
+    let (at_particles, ..) = encode_particles(&cb, &img, &positions);
+    let (centre, _) = nearest_box(k, &f.detections, "mug", &positions[1], 0.25).expect("the mug's box");
+    let (aimed, valid, ..) = encode_particles(&cb, &img, &box_aimed(k, centre, &positions));
+    assert!(valid.iter().all(|v| *v));
+    let kd = cb.code_dim();
+    let cos = |a: &[f32], i: usize, b: &[f32], j: usize| -> f32 {
+        let (x, y) = (&a[i * kd..(i + 1) * kd], &b[j * kd..(j + 1) * kd]);
+        let dot: f32 = x.iter().zip(y).map(|(p, q)| p * q).sum();
+        let n = |v: &[f32]| v.iter().map(|p| p * p).sum::<f32>().sqrt();
+        dot / (n(x) * n(y))
+    };
+    for p in 1..positions.len() {
+        let off = cos(&at_particles, p, &at_particles, 0);
+        let on = cos(&aimed, p, &at_particles, 0);
+        eprintln!("particle {p}: at its projection {off:.3}, aimed {on:.3}");
+        // the deeper particle crops at its own scale and depth, a little off the truth's
+        assert!(on > 0.8, "particle {p}: aimed crop's code against the truth's {on}");
+        assert!(
+            on > off + 0.2,
+            "particle {p}: aimed {on} against its own projection {off}"
+        );
+    }
+}

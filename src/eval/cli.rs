@@ -134,6 +134,7 @@ pub fn tracker_config_with(overrides: &serde_json::Value) -> anyhow::Result<Trac
     full["support"] = serde_json::to_value(crate::tracker::support::SupportConfig::default())?;
     // off by default and then left out of the settings (their hash stays that of the map)
     full["observation"]["full_area_px"] = serde_json::json!(0.0);
+    full["observation"]["box_crops_below_px"] = serde_json::json!(0.0);
     full["twins"]["near_max_trimmed_rel"] = serde_json::json!(0.0);
     full["twins"]["near_min_object_px"] = serde_json::json!(0.0);
     full["verification"]["register_modes"] = serde_json::json!(false);
@@ -319,17 +320,23 @@ mod tests {
     }
 
     #[test]
-    fn the_area_weighting_off_by_default_can_be_named() {
-        let a = tracker_config_with(&serde_json::json!({"observation": {"full_area_px": 1000.0}})).expect("area");
+    fn the_observation_settings_off_by_default_can_be_named() {
+        let a = tracker_config_with(
+            &serde_json::json!({"observation": {"full_area_px": 1000.0, "box_crops_below_px": 60.0}}),
+        )
+        .expect("area");
         assert_eq!(a.observation.full_area_px, 1000.0);
+        assert_eq!(a.observation.box_crops_below_px, 60.0);
         assert_eq!(a.observation.sigma, TrackerConfig::default().observation.sigma);
         let off = serde_json::to_value(TrackerConfig::default()).unwrap();
-        assert!(
-            off["observation"].get("full_area_px").is_none(),
-            "off, it stays out of the settings"
-        );
         let on = serde_json::to_value(a).unwrap();
-        assert_eq!(on["observation"]["full_area_px"], 1000.0);
+        for (key, value) in [("full_area_px", 1000.0), ("box_crops_below_px", 60.0)] {
+            assert!(
+                off["observation"].get(key).is_none(),
+                "{key} off stays out of the settings"
+            );
+            assert_eq!(on["observation"][key], value);
+        }
     }
 
     #[test]

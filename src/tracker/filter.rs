@@ -422,7 +422,15 @@ struct Model {
     /// The mean area of the object's silhouette (m², [`observation::mean_silhouette_area_m2`]);
     /// 0 unless [`observation::ObservationConfig::full_area_px`] reads it.
     silhouette_m2: f64,
+    /// Whether the mesh's origin lies near the centre of its bounding box, so that a
+    /// detector's box centre is where the codebook's crops are centred
+    /// ([`observation::ObservationConfig::box_crops_below_px`] reads it).
+    box_centred: bool,
 }
+
+/// A mesh's origin farther than this share of the codebook's box from the centre of its
+/// bounding box (a mesh whose origin is its base) is not cropped at the detector's box.
+const MAX_BOX_AIM_OFFSET_REL: f64 = 0.1;
 
 /// State of one track.
 struct TrackState {
@@ -619,6 +627,8 @@ impl Tracker {
         } else {
             0.0
         };
+        let bounds = mesh.bounds();
+        let box_centred = ((bounds.min_m + bounds.max_m) * 0.5).norm() <= MAX_BOX_AIM_OFFSET_REL * codebook.box_m();
         if let Some(mi) = self.models.iter().position(|m| m.name == name) {
             // a better codebook for a known model: its tracks move to the new grid through
             // their compact snapshots (see `snapshot`), keeping particles and marginals
@@ -634,6 +644,7 @@ impl Tracker {
             m.twin_partners = twin_partners;
             m.support = support;
             m.silhouette_m2 = silhouette_m2;
+            m.box_centred = box_centred;
             m.mesh = mesh;
             m.codebook = codebook;
             m.tables = tables;
@@ -653,6 +664,7 @@ impl Tracker {
             twin_partners,
             support,
             silhouette_m2,
+            box_centred,
         });
     }
 

@@ -76,6 +76,17 @@ pub struct ObservationConfig {
     /// boxes only start tracks and drive the recovery.
     #[serde(default = "default_detection_box")]
     pub detection_box: Option<DetectionBoxConfig>,
+    /// A view in which the object spans fewer pixels than this ([`object_size_px`]) crops
+    /// every particle on the ray through the centre of the detector's box of the object, at
+    /// the particle's own depth ([`box_aimed`]), not at the particle's projection: at 25 px a
+    /// particle a few centimetres off crops the object several pixels off centre, and such a
+    /// crop matches wrong rotations. The view's rotation evidence is then the same for all
+    /// particles; where they are comes from its box and depth terms. Only for a mesh whose
+    /// origin is near its bounding box's centre (the codebook centres its crops on the origin,
+    /// a box centre sits on the silhouette). 0 (the default; left out of the serialised
+    /// settings): every crop at its particle's projection.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub box_crops_below_px: f32,
 }
 
 /// How a detection's box weighs the particles of a view: a Gaussian on the distance (pixels)
@@ -118,6 +129,7 @@ impl Default for ObservationConfig {
             full_size_px: default_full_size_px(),
             full_area_px: 0.0,
             detection_box: default_detection_box(),
+            box_crops_below_px: 0.0,
         }
     }
 }
@@ -135,21 +147,7 @@ pub fn box_loglik(
     config: &DetectionBoxConfig,
     out: &mut [f32],
 ) {
-    let Some(mean_uv) = intrinsics.project(&nalgebra::Point3::from(*mean_view_m)) else {
-        return;
-    };
-    let boxes = detections
-        .iter()
-        .filter(|d| d.object == object && d.bbox_xywh_px[2] > 1.0 && d.bbox_xywh_px[3] > 1.0)
-        .map(|d| {
-            (
-                d.centre_px(),
-                config.sigma_rel * d.bbox_xywh_px[2].max(d.bbox_xywh_px[3]),
-            )
-        });
-    let d2 =
-        |c: &[f64; 2], uv: &[f64; 2], sigma: f64| ((uv[0] - c[0]).powi(2) + (uv[1] - c[1]).powi(2)) / (sigma * sigma);
-    let Some((centre, sigma)) = boxes.min_by(|a, b| d2(&a.0, &mean_uv, a.1).total_cmp(&d2(&b.0, &mean_uv, b.1))) else {
+    let Some((centre, sigma)) = nearest_box(intrinsics, detections, object, mean_view_m, config.sigma_rel) else {
         return;
     };
     for (p, o) in positions_in_view_m.iter().zip(out.iter_mut()) {
@@ -159,6 +157,47 @@ pub fn box_loglik(
         };
         *o += l as f32;
     }
+}
+
+/// Squared distance from `uv` to `c` in units of `sigma`.
+fn d2(c: &[f64; 2], uv: &[f64; 2], sigma: f64) -> f64 {
+    ((uv[0] - c[0]).powi(2) + (uv[1] - c[1]).powi(2)) / (sigma * sigma)
+}
+
+/// The centre and sigma (`sigma_rel` of its longer side) of the detector's box of `object`
+/// nearest, in its own sigmas, to the projection of the track's mean `mean_view_m`; `None`
+/// when the view has no box of the object or the mean is behind the camera.
+pub fn nearest_box(
+    intrinsics: &Intrinsics,
+    detections: &[crate::tracker::Detection],
+    object: &str,
+    mean_view_m: &Vector3<f64>,
+    sigma_rel: f64,
+) -> Option<([f64; 2], f64)> {
+    let mean_uv = intrinsics.project(&nalgebra::Point3::from(*mean_view_m))?;
+    detections
+        .iter()
+        .filter(|d| d.object == object && d.bbox_xywh_px[2] > 1.0 && d.bbox_xywh_px[3] > 1.0)
+        .map(|d| (d.centre_px(), sigma_rel * d.bbox_xywh_px[2].max(d.bbox_xywh_px[3])))
+        .min_by(|a, b| d2(&a.0, &mean_uv, a.1).total_cmp(&d2(&b.0, &mean_uv, b.1)))
+}
+
+/// Each position moved, at its own depth, onto the ray through pixel `centre_px` (see
+/// [`ObservationConfig::box_crops_below_px`]); positions behind the camera stay.
+pub fn box_aimed(
+    intrinsics: &Intrinsics,
+    centre_px: [f64; 2],
+    positions_in_view_m: &[Vector3<f64>],
+) -> Vec<Vector3<f64>> {
+    let ray = Vector3::new(
+        (centre_px[0] - intrinsics.cx()) / intrinsics.fx(),
+        (centre_px[1] - intrinsics.cy()) / intrinsics.fy(),
+        1.0,
+    );
+    positions_in_view_m
+        .iter()
+        .map(|p| if p.z < MIN_RANGE_M { *p } else { ray * p.z })
+        .collect()
 }
 
 /// How many pixels the object of `codebook` spans in a view at `depth_m` (its diameter over
@@ -574,6 +613,38 @@ mod tests {
         );
         assert!(out[0].abs() < 1e-6, "{}", out[0]);
         assert_eq!(out[1] as f64, cfg.floor);
+    }
+
+    #[test]
+    fn box_aimed_crops_sit_on_the_box_centre_at_each_particle_s_depth() {
+        let k = Intrinsics::new(640, 480, [615.0, 0.0, 319.5, 0.0, 615.0, 239.5, 0.0, 0.0, 1.0]).unwrap();
+        let mug = |x: f64| crate::tracker::Detection {
+            object: "mug".into(),
+            bbox_xywh_px: [x, 230.0, 24.0, 20.0],
+            score: 1.0,
+        };
+        // a mug 3 m away, boxed at (412, 240); the track's mean 4 cm off projects 8 px away
+        let dets = [mug(100.0), mug(400.0)];
+        let mean = Vector3::new((420.0 - 319.5) / 615.0 * 3.0, 0.0, 3.0);
+        let (centre, sigma) = nearest_box(&k, &dets, "mug", &mean, 0.25).expect("a box of the mug");
+        assert_eq!(centre, [411.5, 239.5], "the box nearer the track");
+        assert_eq!(sigma, 6.0);
+        assert!(nearest_box(&k, &dets, "can", &mean, 0.25).is_none());
+        let parts = [
+            mean,
+            mean + Vector3::new(0.05, -0.03, 0.2),
+            Vector3::new(0.0, 0.0, -1.0),
+        ];
+        let aimed = box_aimed(&k, centre, &parts);
+        for (a, p) in aimed.iter().zip(&parts).take(2) {
+            let uv = k.project(&nalgebra::Point3::from(*a)).expect("in front");
+            assert!(
+                (uv[0] - centre[0]).abs() < 1e-9 && (uv[1] - centre[1]).abs() < 1e-9,
+                "{uv:?}"
+            );
+            assert_eq!(a.z, p.z, "each particle keeps its depth (its crop's scale)");
+        }
+        assert_eq!(aimed[2], parts[2], "behind the camera: unchanged");
     }
 
     #[test]

@@ -185,7 +185,23 @@ impl TrackUpdate<'_> {
                 depth: &frame.depth,
                 color: frame.color.as_ref(),
             };
-            let (codes, valid, central_depth, crops_s, encoding_s) = encode_particles(&codebook, &img, &positions);
+            let size_px = crate::tracker::observation::object_size_px(&codebook, &frame.intrinsics, mean_view.z) as f32;
+            let aimed = (size_px < obs_cfg.box_crops_below_px && self.models[mi].box_centred)
+                .then(|| {
+                    let sigma_rel = obs_cfg.detection_box.unwrap_or_default().sigma_rel;
+                    let object = &self.models[mi].name;
+                    crate::tracker::observation::nearest_box(
+                        &frame.intrinsics,
+                        &frame.detections,
+                        object,
+                        &mean_view,
+                        sigma_rel,
+                    )
+                })
+                .flatten()
+                .map(|(centre, _)| crate::tracker::observation::box_aimed(&frame.intrinsics, centre, &positions));
+            let (codes, valid, central_depth, crops_s, encoding_s) =
+                encode_particles(&codebook, &img, aimed.as_deref().unwrap_or(&positions));
             report.timings.crops_s += crops_s;
             report.timings.encoding_s += encoding_s;
             if !valid.iter().any(|v| *v) {
@@ -203,7 +219,7 @@ impl TrackUpdate<'_> {
                 positions_in_view_m: positions,
                 q,
                 dense_map: None,
-                size_px: crate::tracker::observation::object_size_px(&codebook, &frame.intrinsics, mean_view.z) as f32,
+                size_px,
                 area_px: crate::tracker::observation::object_area_px(
                     self.models[mi].silhouette_m2,
                     &frame.intrinsics,
