@@ -428,10 +428,6 @@ struct Model {
     box_centred: bool,
 }
 
-/// A mesh's origin farther than this share of the codebook's box from the centre of its
-/// bounding box (a mesh whose origin is its base) is not cropped at the detector's box.
-const MAX_BOX_AIM_OFFSET_REL: f64 = 0.1;
-
 /// State of one track.
 struct TrackState {
     model: usize,
@@ -627,8 +623,7 @@ impl Tracker {
         } else {
             0.0
         };
-        let bounds = mesh.bounds();
-        let box_centred = ((bounds.min_m + bounds.max_m) * 0.5).norm() <= MAX_BOX_AIM_OFFSET_REL * codebook.box_m();
+        let box_centred = crate::tracker::observation::origin_near_box_centre(&mesh, codebook.box_m());
         if let Some(mi) = self.models.iter().position(|m| m.name == name) {
             // a better codebook for a known model: its tracks move to the new grid through
             // their compact snapshots (see `snapshot`), keeping particles and marginals

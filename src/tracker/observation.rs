@@ -200,6 +200,19 @@ pub fn box_aimed(
         .collect()
 }
 
+/// A mesh's origin farther than this share of its diameter from the centre of its bounding
+/// box (a mesh whose origin is its base) is not cropped at the detector's box.
+const MAX_BOX_AIM_OFFSET_REL: f64 = 0.1;
+
+/// Whether the origin of `mesh` (`diameter_m` across) lies near the centre of its bounding
+/// box, where a detector's box centre falls: the condition for
+/// [`ObservationConfig::box_crops_below_px`], since the codebook centres its crops on the
+/// origin.
+pub fn origin_near_box_centre(mesh: &crate::mesh::Mesh, diameter_m: f64) -> bool {
+    let b = mesh.bounds();
+    ((b.min_m + b.max_m) * 0.5).norm() <= MAX_BOX_AIM_OFFSET_REL * diameter_m
+}
+
 /// How many pixels the object of `codebook` spans in a view at `depth_m` (its diameter over
 /// the range; a range under 5 cm counts as 5 cm): what the size weighting and the
 /// verification's near-view limit read.
@@ -645,6 +658,25 @@ mod tests {
             assert_eq!(a.z, p.z, "each particle keeps its depth (its crop's scale)");
         }
         assert_eq!(aimed[2], parts[2], "behind the camera: unchanged");
+    }
+
+    #[test]
+    fn only_a_mesh_centred_on_its_box_is_cropped_at_the_detector_s_box() {
+        let mut mesh = crate::mesh::builtin_mug();
+        let b = mesh.bounds();
+        let c = (b.min_m + b.max_m) * 0.5;
+        for v in &mut mesh.vertices_m {
+            for k in 0..3 {
+                v[k] -= c[k] as f32;
+            }
+        }
+        assert!(origin_near_box_centre(&mesh, 0.14));
+        // the origin at its base, 4.5 cm below the centre: its box centre is not where the
+        // codebook's crops are centred
+        for v in &mut mesh.vertices_m {
+            v[2] += 0.045;
+        }
+        assert!(!origin_near_box_centre(&mesh, 0.14));
     }
 
     #[test]
