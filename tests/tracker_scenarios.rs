@@ -636,8 +636,11 @@ fn survivors_with_duplicated_view(tempering: f64, copies: usize) -> Vec<usize> {
         // view's box, the only one, would weigh the first step apart from the copies' evidence
         // (with it 167 / 170 / 138)
         turn_share: 0.0,
+        // the crops at the particles: aimed at the box (the toy box spans under 60 px), every
+        // particle would get the same crop and the copies' evidence would not tell them apart
         observation: pregrasp::tracker::observation::ObservationConfig {
             detection_box: None,
+            box_crops_below_px: 0.0,
             ..Default::default()
         },
         ..TrackerConfig::default()

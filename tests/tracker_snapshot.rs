@@ -29,12 +29,14 @@ struct TrackedBox {
 }
 
 /// The toy camera (160 x 120) sees the box at about 27 px, where the size weighting (by area or
-/// by diameter) would keep the track broad for many steps; these tests are about snapshots of
-/// a converged one.
+/// by diameter) would keep the track broad for many steps, and crops aimed at the detector's
+/// box would leave its position to the box and depth terms alone; these tests are about
+/// snapshots of a converged one.
 fn config() -> TrackerConfig {
     let mut config = TrackerConfig::default();
     config.observation.full_size_px = 0.0;
     config.observation.full_area_px = 0.0;
+    config.observation.box_crops_below_px = 0.0;
     config
 }
 

@@ -134,7 +134,6 @@ pub fn tracker_config_with(overrides: &serde_json::Value) -> anyhow::Result<Trac
     full["support"] = serde_json::to_value(crate::tracker::support::SupportConfig::default())?;
     // off by default and then left out of the settings (their hash stays that of the map)
     full["observation"]["full_area_px"] = serde_json::json!(0.0);
-    full["observation"]["box_crops_below_px"] = serde_json::json!(0.0);
     full["twins"]["near_max_trimmed_rel"] = serde_json::json!(0.0);
     full["twins"]["near_min_object_px"] = serde_json::json!(0.0);
     full["verification"]["register_modes"] = serde_json::json!(false);
@@ -320,23 +319,31 @@ mod tests {
     }
 
     #[test]
-    fn the_observation_settings_off_by_default_can_be_named() {
-        let a = tracker_config_with(
-            &serde_json::json!({"observation": {"full_area_px": 1000.0, "box_crops_below_px": 60.0}}),
-        )
-        .expect("area");
+    fn the_far_box_crops_on_by_default_can_be_switched_off() {
+        let d = TrackerConfig::default();
+        assert_eq!(d.observation.box_crops_below_px, 60.0);
+        let off = tracker_config_with(&serde_json::json!({"observation": {"box_crops_below_px": 0.0}})).expect("off");
+        assert_eq!(off.observation.box_crops_below_px, 0.0);
+        assert_eq!(off.observation.sigma, d.observation.sigma);
+        // switched off, they stay off through the serialised settings (the map's hash reads them)
+        let back: TrackerConfig = serde_json::from_value(serde_json::to_value(&off).unwrap()).unwrap();
+        assert_eq!(back.observation, off.observation);
+        let mut without = serde_json::to_value(&d).unwrap();
+        without["observation"].as_object_mut().unwrap().remove("box_crops_below_px");
+        let missing: TrackerConfig = serde_json::from_value(without).unwrap();
+        assert_eq!(missing.observation, d.observation, "settings that do not name it keep the default");
+    }
+
+    #[test]
+    fn the_silhouette_area_off_by_default_can_be_named() {
+        let a = tracker_config_with(&serde_json::json!({"observation": {"full_area_px": 1000.0}})).expect("area");
         assert_eq!(a.observation.full_area_px, 1000.0);
-        assert_eq!(a.observation.box_crops_below_px, 60.0);
-        assert_eq!(a.observation.sigma, TrackerConfig::default().observation.sigma);
         let off = serde_json::to_value(TrackerConfig::default()).unwrap();
-        let on = serde_json::to_value(a).unwrap();
-        for (key, value) in [("full_area_px", 1000.0), ("box_crops_below_px", 60.0)] {
-            assert!(
-                off["observation"].get(key).is_none(),
-                "{key} off stays out of the settings"
-            );
-            assert_eq!(on["observation"][key], value);
-        }
+        assert!(
+            off["observation"].get("full_area_px").is_none(),
+            "full_area_px off stays out of the settings"
+        );
+        assert_eq!(serde_json::to_value(a).unwrap()["observation"]["full_area_px"], 1000.0);
     }
 
     #[test]

@@ -83,9 +83,9 @@ pub struct ObservationConfig {
     /// crop matches wrong rotations. The view's rotation evidence is then the same for all
     /// particles; where they are comes from its box and depth terms. Only for a mesh whose
     /// origin is near its bounding box's centre (the codebook centres its crops on the origin,
-    /// a box centre sits on the silhouette). 0 (the default; left out of the serialised
-    /// settings): every crop at its particle's projection.
-    #[serde(default, skip_serializing_if = "is_zero")]
+    /// a box centre sits on the silhouette). 60 by default; 0: every crop at its particle's
+    /// projection.
+    #[serde(default = "default_box_crops_below_px")]
     pub box_crops_below_px: f32,
 }
 
@@ -113,6 +113,10 @@ impl Default for DetectionBoxConfig {
     }
 }
 
+fn default_box_crops_below_px() -> f32 {
+    60.0
+}
+
 fn default_detection_box() -> Option<DetectionBoxConfig> {
     Some(DetectionBoxConfig::default())
 }
@@ -129,7 +133,7 @@ impl Default for ObservationConfig {
             full_size_px: default_full_size_px(),
             full_area_px: 0.0,
             detection_box: default_detection_box(),
-            box_crops_below_px: 0.0,
+            box_crops_below_px: default_box_crops_below_px(),
         }
     }
 }
