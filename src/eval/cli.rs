@@ -329,9 +329,15 @@ mod tests {
         let back: TrackerConfig = serde_json::from_value(serde_json::to_value(&off).unwrap()).unwrap();
         assert_eq!(back.observation, off.observation);
         let mut without = serde_json::to_value(&d).unwrap();
-        without["observation"].as_object_mut().unwrap().remove("box_crops_below_px");
+        without["observation"]
+            .as_object_mut()
+            .unwrap()
+            .remove("box_crops_below_px");
         let missing: TrackerConfig = serde_json::from_value(without).unwrap();
-        assert_eq!(missing.observation, d.observation, "settings that do not name it keep the default");
+        assert_eq!(
+            missing.observation, d.observation,
+            "settings that do not name it keep the default"
+        );
     }
 
     #[test]
