@@ -11,6 +11,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 SECONDS_WINDOW="${1:-168}"
 DATA_DIR="${2:-$(mktemp -d)}"
+mkdir -p "$DATA_DIR"
 PORT="${PORT:-18080}"
 cargo build --release --quiet
 export WGPU_BACKEND="${WGPU_BACKEND:-vulkan}"
@@ -21,7 +22,8 @@ trap 'kill -INT $SERVER 2>/dev/null || true; wait $SERVER 2>/dev/null || true' E
 for _ in $(seq 1 360); do
   sleep 5
   # objects whose 5-degree codebook is ready
-  ready=$(curl -s "127.0.0.1:$PORT/api/v1/objects" | python3 -c '
+  # (curl fails until the server listens: the parser then reads nothing and says 0)
+  ready=$({ curl -s "127.0.0.1:$PORT/api/v1/objects" || true; } | python3 -c '
 import json, sys
 def fine(v):
     if isinstance(v, dict):
@@ -35,7 +37,7 @@ try:
     print(sum(1 for o in objects if fine(o)))
 except Exception:
     print(0)
-' || echo 0)
+')
   [[ "$ready" -ge 3 ]] && break
 done
 sleep 10
