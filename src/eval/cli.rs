@@ -325,7 +325,7 @@ mod tests {
         let off = tracker_config_with(&serde_json::json!({"observation": {"box_crops_below_px": 0.0}})).expect("off");
         assert_eq!(off.observation.box_crops_below_px, 0.0);
         assert_eq!(off.observation.sigma, d.observation.sigma);
-        // switched off, they stay off through the serialised settings (the map's hash reads them)
+        // switched off, it stays off through the serialised settings (the map's hash reads them)
         let back: TrackerConfig = serde_json::from_value(serde_json::to_value(&off).unwrap()).unwrap();
         assert_eq!(back.observation, off.observation);
         let mut without = serde_json::to_value(&d).unwrap();
