@@ -746,8 +746,7 @@ fn crops_aimed_at_the_box_read_a_small_far_mug_as_its_own_crop() {
     use pregrasp::tracker::observation::{ViewImage, box_aimed, encode_particles, nearest_box, object_size_px};
     // the origin moved to the box's centre, as the YCB meshes have it
     let mut mesh = pregrasp::mesh::builtin("mug").unwrap();
-    let b = mesh.bounds();
-    let c = (b.min_m + b.max_m) * 0.5;
+    let c = mesh.bounds().center_m();
     for v in &mut mesh.vertices_m {
         for k in 0..3 {
             v[k] -= c[k] as f32;

@@ -138,20 +138,17 @@ impl Default for ObservationConfig {
     }
 }
 
-/// Adds to `out` each particle's log-likelihood of the box of `object` in one view: the box
-/// nearest (in its own sigmas) to the projection of the track's mean `mean_view_m`, scored at
-/// the projection of every particle (`positions_in_view_m`, view frame). Nothing when the view
-/// has no box of the object or the mean is behind the camera.
+/// Adds to `out` each particle's log-likelihood of one view's box of the object (centre and
+/// sigma, as [`nearest_box`] finds it), scored at the projection of every particle
+/// (`positions_in_view_m`, view frame). Nothing when the view has no box of the object.
 pub fn box_loglik(
     intrinsics: &Intrinsics,
-    detections: &[crate::tracker::Detection],
-    object: &str,
-    mean_view_m: &Vector3<f64>,
+    object_box: Option<([f64; 2], f64)>,
     positions_in_view_m: &[Vector3<f64>],
     config: &DetectionBoxConfig,
     out: &mut [f32],
 ) {
-    let Some((centre, sigma)) = nearest_box(intrinsics, detections, object, mean_view_m, config.sigma_rel) else {
+    let Some((centre, sigma)) = object_box else {
         return;
     };
     for (p, o) in positions_in_view_m.iter().zip(out.iter_mut()) {
@@ -213,8 +210,7 @@ const MAX_BOX_AIM_OFFSET_REL: f64 = 0.1;
 /// [`ObservationConfig::box_crops_below_px`], since the codebook centres its crops on the
 /// origin.
 pub fn origin_near_box_centre(mesh: &crate::mesh::Mesh, diameter_m: f64) -> bool {
-    let b = mesh.bounds();
-    ((b.min_m + b.max_m) * 0.5).norm() <= MAX_BOX_AIM_OFFSET_REL * diameter_m
+    mesh.bounds().center_m().norm() <= MAX_BOX_AIM_OFFSET_REL * diameter_m
 }
 
 /// How many pixels the object of `codebook` spans in a view at `depth_m` (its diameter over
@@ -590,7 +586,8 @@ mod tests {
         let at_px = |u: f64| Vector3::new((u - 319.5) / 600.0 * 2.0, 0.0, 2.0);
         let parts = [at_px(319.5), at_px(339.5), at_px(419.5), Vector3::new(0.0, 0.0, -1.0)];
         let mut out = vec![1.0f32; 4];
-        box_loglik(&k, &dets, "mug", &at_px(319.5), &parts, &cfg, &mut out);
+        let mug = nearest_box(&k, &dets, "mug", &at_px(319.5), cfg.sigma_rel);
+        box_loglik(&k, mug, &parts, &cfg, &mut out);
         assert!((out[0] - 1.0).abs() < 1e-6, "at the centre: nothing taken, {}", out[0]);
         assert!(
             (out[1] - (1.0 - 2.0)).abs() < 1e-4,
@@ -601,7 +598,8 @@ mod tests {
         assert_eq!(out[3], 1.0 - 4.0, "behind the camera: the floor");
         // no box of the object: nothing
         let mut none = vec![0.0f32; 4];
-        box_loglik(&k, &dets, "can", &at_px(319.5), &parts, &cfg, &mut none);
+        let can = nearest_box(&k, &dets, "can", &at_px(319.5), cfg.sigma_rel);
+        box_loglik(&k, can, &parts, &cfg, &mut none);
         assert_eq!(none, vec![0.0; 4]);
     }
 
@@ -619,15 +617,8 @@ mod tests {
         let dets = [det(100.0), det(500.0)];
         let at_px = |u: f64| Vector3::new((u - 319.5) / 600.0, 0.0, 1.0);
         let mut out = vec![0.0f32; 2];
-        box_loglik(
-            &k,
-            &dets,
-            "mug",
-            &at_px(510.0),
-            &[at_px(519.5), at_px(119.5)],
-            &cfg,
-            &mut out,
-        );
+        let nearest = nearest_box(&k, &dets, "mug", &at_px(510.0), cfg.sigma_rel);
+        box_loglik(&k, nearest, &[at_px(519.5), at_px(119.5)], &cfg, &mut out);
         assert!(out[0].abs() < 1e-6, "{}", out[0]);
         assert_eq!(out[1] as f64, cfg.floor);
     }
@@ -667,8 +658,7 @@ mod tests {
     #[test]
     fn only_a_mesh_centred_on_its_box_is_cropped_at_the_detector_s_box() {
         let mut mesh = crate::mesh::builtin_mug();
-        let b = mesh.bounds();
-        let c = (b.min_m + b.max_m) * 0.5;
+        let c = mesh.bounds().center_m();
         for v in &mut mesh.vertices_m {
             for k in 0..3 {
                 v[k] -= c[k] as f32;

@@ -161,18 +161,18 @@ impl TrackUpdate<'_> {
                 .map(|p| (view_from_ref * Point3::from(*p)).coords)
                 .collect();
             let mean_view = (view_from_ref * Point3::from(mean_ref)).coords;
+            // the detector's box of the object nearest the track: its box term and, where the
+            // object is small, the centre its crops are aimed at
+            let object_box = crate::tracker::observation::nearest_box(
+                &frame.intrinsics,
+                &frame.detections,
+                &self.models[mi].name,
+                &mean_view,
+                obs_cfg.detection_box.unwrap_or_default().sigma_rel,
+            );
             if let Some(cfg) = &obs_cfg.detection_box {
                 let mut l = vec![0f32; n];
-                let object = &self.models[mi].name;
-                box_loglik(
-                    &frame.intrinsics,
-                    &frame.detections,
-                    object,
-                    &mean_view,
-                    &positions,
-                    cfg,
-                    &mut l,
-                );
+                box_loglik(&frame.intrinsics, object_box, &positions, cfg, &mut l);
                 box_logs.push(l);
             }
             if let Some(uv) = frame.intrinsics.project(&Point3::from(mean_view))
@@ -187,17 +187,7 @@ impl TrackUpdate<'_> {
             };
             let size_px = crate::tracker::observation::object_size_px(&codebook, &frame.intrinsics, mean_view.z) as f32;
             let aimed = (size_px < obs_cfg.box_crops_below_px && self.models[mi].box_centred)
-                .then(|| {
-                    let sigma_rel = obs_cfg.detection_box.unwrap_or_default().sigma_rel;
-                    let object = &self.models[mi].name;
-                    crate::tracker::observation::nearest_box(
-                        &frame.intrinsics,
-                        &frame.detections,
-                        object,
-                        &mean_view,
-                        sigma_rel,
-                    )
-                })
+                .then_some(object_box)
                 .flatten()
                 .map(|(centre, _)| crate::tracker::observation::box_aimed(&frame.intrinsics, centre, &positions));
             let (codes, valid, central_depth, crops_s, encoding_s) =
