@@ -797,3 +797,67 @@ fn crops_aimed_at_the_box_read_a_small_far_mug_as_its_own_crop() {
         );
     }
 }
+
+/// A mug whose origin is the middle of its body, not of its box, seen with its handle to the
+/// side (the box's centre a tenth of the crop off the origin's projection) and cropped at the
+/// detector's box: its crop is its own template centred on the box of its silhouette, so the
+/// box-centred code table matches the true rotation far better than the origin-centred one
+/// (`observation.box_codes`).
+#[test]
+fn a_crop_at_the_box_matches_the_box_centred_template_of_its_rotation() {
+    use pregrasp::geometry::ray_rotation;
+    use pregrasp::tracker::observation::{ViewImage, box_aimed, encode_particles, nearest_box};
+    let mesh = pregrasp::mesh::builtin("mug").unwrap();
+    let b = mesh.bounds();
+    let offset = b.center_m().norm() / mesh.diameter_m();
+    assert!(
+        offset > 0.05,
+        "the origin {offset} of the diameter off the box's centre"
+    );
+    let cb = coarse_codebook(&mesh);
+    let world_from_mug = on_table(&mesh, 0.0, 0.0, 0.0);
+    let scene = Scene::new(vec![("mug".into(), mesh.clone(), world_from_mug)]);
+    let cam = look_at([0.0, -0.6, 0.3], [0.0, 0.0, 0.045]);
+    let f = frame("a", &cam, &scene, true, true, 0.0, 3);
+    let view_from_mug = cam.inverse() * world_from_mug;
+    let truth = view_from_mug.translation.vector;
+    let k = &f.intrinsics;
+    let img = ViewImage {
+        intrinsics: k,
+        depth: &f.depth,
+        color: f.color.as_ref(),
+    };
+    let (centre, _) = nearest_box(k, &f.detections, "mug", &truth, 0.25).expect("the mug's box");
+    let uv = k.project(&nalgebra::Point3::from(truth)).unwrap();
+    let side_px = k.fx() * cb.crop_side_m() / truth.z;
+    assert!(
+        (centre[0] - uv[0]).abs() > 0.08 * side_px,
+        "box centre {centre:?}, origin at {uv:?}"
+    );
+    let (code, valid, ..) = encode_particles(&cb, &img, &box_aimed(k, centre, &[truth]));
+    assert!(valid[0]);
+    let true_bin = cb
+        .grid
+        .flat_of(&(ray_rotation(&truth).inverse() * view_from_mug.rotation));
+    let kd = cb.code_dim();
+    let cos = |table: &pregrasp::tracker::codebook::Codes, bin: usize| -> f32 {
+        let mut row = vec![0f32; kd];
+        table.row_into(bin, &mut row);
+        row.iter().zip(&code).map(|(a, b)| a * b).sum()
+    };
+    let rank = |box_centred: bool| {
+        let t = cb.table(box_centred);
+        let c = cos(t, true_bin);
+        (c, (0..cb.n_bins()).filter(|b| cos(t, *b) > c).count())
+    };
+    let (on_origin, origin_rank) = rank(false);
+    let (on_box, box_rank) = rank(true);
+    eprintln!(
+        "true bin: origin-centred {on_origin:.3} (rank {origin_rank}), box-centred {on_box:.3} (rank {box_rank})"
+    );
+    assert!(
+        on_box > on_origin + 0.3,
+        "box-centred {on_box} against origin-centred {on_origin}"
+    );
+    assert!(box_rank < origin_rank, "rank {box_rank} against {origin_rank}");
+}

@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 const MAGIC: &[u8; 8] = b"PGCODEBK";
-const FORMAT_VERSION: u32 = 3;
+const FORMAT_VERSION: u32 = 4;
 
 /// How a codebook is built.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -300,6 +300,12 @@ pub struct Codebook {
     /// Per viewpoint: median normalised depth of the template's central surface
     /// ([`crate::tracker::crop::central_median_depth`]; NaN when none).
     pub median_depth_norm: Vec<f32>,
+    /// The codes of every bin with its template centred on the box of its silhouette (in the
+    /// crop's axes) instead of on the mesh's origin: what a crop centred on a detector's box
+    /// is matched against ([`crate::tracker::observation::ObservationConfig::box_codes`]).
+    pub box_codes: Codes,
+    /// Per bin: the central median normalised depth of the box-centred template (NaN: none).
+    pub box_median_depth_norm: Vec<f32>,
     /// Seconds the build took (0 when loaded from the cache).
     pub build_seconds: f64,
     /// True when it came from the cache.
@@ -323,6 +329,19 @@ impl Codebook {
     /// Depth normalisation box, metres.
     pub fn box_m(&self) -> f64 {
         self.diameter_m
+    }
+    /// The code table crops are matched against: the box-centred one for crops centred on a
+    /// detector's box, the origin-centred one otherwise.
+    pub fn table(&self, box_centred: bool) -> &Codes {
+        if box_centred { &self.box_codes } else { &self.codes }
+    }
+    /// The central median normalised depth of `bin`'s template in that table (NaN: none).
+    pub fn central_depth_norm(&self, bin: usize, box_centred: bool) -> f32 {
+        if box_centred {
+            self.box_median_depth_norm[bin]
+        } else {
+            self.median_depth_norm[bin / self.grid.n_inplane()]
+        }
     }
     /// The code of `bin`.
     pub fn code(&self, bin: usize) -> Vec<f32> {
@@ -407,7 +426,7 @@ impl Codebook {
         let layout = config.layout();
         let d = layout.dim();
         let centre = [k.cx(), k.cy()];
-        let template = |v: usize, theta: f64, out: &mut [f32], mask: &mut [bool]| {
+        let template_at = |v: usize, theta: f64, centre: [f64; 2], out: &mut [f32], mask: &mut [bool]| {
             let p = CropParams {
                 centre_px: centre,
                 side_px: config.render_px as f64,
@@ -420,6 +439,8 @@ impl Codebook {
             sample_crop(&layout, dimg, cimg.as_ref(), &p, out, mask);
             to_chromaticity(&layout, out, mask);
         };
+        let template =
+            |v: usize, theta: f64, out: &mut [f32], mask: &mut [bool]| template_at(v, theta, centre, out, mask);
 
         // training set: clean templates at bins, corrupted crops of the same bins
         let n = config.n_train.max(64);
@@ -510,6 +531,29 @@ impl Codebook {
             }
             encoder.encode_templates(&x, ni, out);
         });
+        // the same bins with each template centred on its silhouette's box
+        let outlines: Vec<Vec<[f64; 2]>> = views
+            .par_iter()
+            .map(|(dimg, _)| outline_offsets(dimg, centre))
+            .collect();
+        let mut box_codes = vec![0f32; grid.len() * kd];
+        let mut box_median_depth_norm = vec![f32::NAN; grid.len()];
+        box_codes
+            .par_chunks_mut(ni * kd)
+            .zip(box_median_depth_norm.par_chunks_mut(ni))
+            .enumerate()
+            .for_each(|(v, (out, med))| {
+                let mut x = vec![0f32; ni * d];
+                let mut mask = vec![false; d];
+                for (i, m) in med.iter_mut().enumerate() {
+                    let theta = i as f64 * step;
+                    let c = box_centre_px(&outlines[v], centre, theta);
+                    let row = &mut x[i * d..(i + 1) * d];
+                    template_at(v, theta, c, row, &mut mask);
+                    *m = crate::tracker::crop::central_median_depth(&layout, row, &mask).unwrap_or(f32::NAN);
+                }
+                encoder.encode_templates(&x, ni, out);
+            });
         let median_depth_norm: Vec<f32> = (0..grid.n_viewpoints())
             .into_par_iter()
             .map(|v| {
@@ -527,10 +571,58 @@ impl Codebook {
             encoder,
             codes: Codes::from_f32(&codes, kd),
             median_depth_norm,
+            box_codes: Codes::from_f32(&box_codes, kd),
+            box_median_depth_norm,
             build_seconds: t0.elapsed().as_secs_f64(),
             from_cache: false,
         })
     }
+}
+
+/// The offsets from `centre` (pixels) of the centres of a rendered view's silhouette pixels
+/// that touch the background or the image's edge: all a rotated box of the silhouette reads.
+fn outline_offsets(depth: &DepthImage, centre: [f64; 2]) -> Vec<[f64; 2]> {
+    let (w, h) = (depth.width as usize, depth.height as usize);
+    let on = |x: usize, y: usize| depth.data_m[y * w + x] > 0.0;
+    let mut out = Vec::new();
+    for y in 0..h {
+        for x in 0..w {
+            if on(x, y)
+                && (x == 0
+                    || y == 0
+                    || x + 1 == w
+                    || y + 1 == h
+                    || !on(x - 1, y)
+                    || !on(x + 1, y)
+                    || !on(x, y - 1)
+                    || !on(x, y + 1))
+            {
+                out.push([x as f64 - centre[0], y as f64 - centre[1]]);
+            }
+        }
+    }
+    out
+}
+
+/// Where in the view a crop at in-plane angle `theta` must be centred for the silhouette
+/// (`outline`, offsets from `centre`) to sit in the middle of the crop's axis-aligned box, as a
+/// detector's box centres it; `centre` itself for an empty silhouette. A crop sample at
+/// offset `o` reads the view at `centre + M o`, `M = [[c, s], [-s, c]]` ([`sample_crop`]).
+fn box_centre_px(outline: &[[f64; 2]], centre: [f64; 2], theta: f64) -> [f64; 2] {
+    if outline.is_empty() {
+        return centre;
+    }
+    let (s, c) = theta.sin_cos();
+    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+    for u in outline {
+        let o = [c * u[0] - s * u[1], s * u[0] + c * u[1]];
+        for a in 0..2 {
+            lo[a] = lo[a].min(o[a]);
+            hi[a] = hi[a].max(o[a]);
+        }
+    }
+    let b = [(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0];
+    [centre[0] + c * b[0] + s * b[1], centre[1] - s * b[0] + c * b[1]]
 }
 
 /// A corrupted crop of view `view` at in-plane angle `theta`: shifted, rescaled, rotated within
@@ -825,6 +917,8 @@ fn write_cache(path: &Path, cb: &Codebook) -> Result<(), TrackerError> {
         &cb.encoder.ridge_t,
         &cb.codes.to_f32(),
         &cb.median_depth_norm,
+        &cb.box_codes.to_f32(),
+        &cb.box_median_depth_norm,
     ] {
         w.put_f32s(v)?;
     }
@@ -891,16 +985,24 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
         d.saturating_mul(k),
         header.n_bins.saturating_mul(k),
         grid.n_viewpoints(),
+        header.n_bins.saturating_mul(k),
+        header.n_bins,
     ];
-    // the codes (index 4) go to half floats chunk by chunk: no full f32 copy
+    // the two code tables (indices 4 and 6) go to half floats chunk by chunk: no full f32 copy
     let mut arrays = Vec::with_capacity(sizes.len());
-    let mut codes = Codes {
-        dim: k,
-        values: Vec::new(),
-    };
+    let mut tables = [
+        Codes {
+            dim: k,
+            values: Vec::new(),
+        },
+        Codes {
+            dim: k,
+            values: Vec::new(),
+        },
+    ];
     for (i, n) in sizes.into_iter().enumerate() {
-        if i == 4 {
-            codes.values = r.f32s_as_f16(n).map_err(bad)?;
+        if i == 4 || i == 6 {
+            tables[i / 6].values = r.f32s_as_f16(n).map_err(bad)?;
             arrays.push(Vec::new());
         } else {
             arrays.push(r.f32s(n).map_err(bad)?);
@@ -914,9 +1016,18 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
     if r.hasher.finalize().as_slice() != sum {
         return Err(bad("checksum mismatch"));
     }
-    let [mean_clean, mean_observed, pca_t, ridge_t, _, median_depth_norm]: [Vec<f32>; 6] =
-        arrays.try_into().map_err(|_| bad("arrays"))?;
-    if codes.values.iter().any(|v| !v.is_finite()) {
+    let [
+        mean_clean,
+        mean_observed,
+        pca_t,
+        ridge_t,
+        _,
+        median_depth_norm,
+        _,
+        box_median_depth_norm,
+    ]: [Vec<f32>; 8] = arrays.try_into().map_err(|_| bad("arrays"))?;
+    let [codes, box_codes] = tables;
+    if codes.values.iter().chain(&box_codes.values).any(|v| !v.is_finite()) {
         return Err(bad("non-finite codes"));
     }
     Ok(Codebook {
@@ -935,6 +1046,8 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
         },
         codes,
         median_depth_norm,
+        box_codes,
+        box_median_depth_norm,
         build_seconds: 0.0,
         from_cache: true,
     })
@@ -981,6 +1094,84 @@ pub fn viewpoint_pose(grid: &RotationGrid, viewpoint: usize, distance_m: f64) ->
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A crop centred where [`box_centre_px`] says has the silhouette's extremes at equal
+    /// distances from its centre along both of its axes, at any in-plane angle.
+    #[test]
+    fn a_box_centred_crop_has_the_silhouette_in_its_middle() {
+        // an L of pixels off the centre of a 64 px view
+        let (w, h) = (64usize, 64usize);
+        let mut data = vec![0f32; w * h];
+        for y in 10..40 {
+            for x in 36..44 {
+                data[y * w + x] = 1.0;
+            }
+        }
+        for y in 32..40 {
+            for x in 44..60 {
+                data[y * w + x] = 1.0;
+            }
+        }
+        let depth = DepthImage::new(w as u32, h as u32, data).unwrap();
+        let centre = [31.5, 31.5];
+        let outline = outline_offsets(&depth, centre);
+        assert!(!outline.is_empty());
+        assert_eq!(
+            box_centre_px(&outline, centre, 0.0),
+            [(36.0 + 59.0) / 2.0, (10.0 + 39.0) / 2.0]
+        );
+        for theta in [0.3f64, 1.0, 2.5, 4.0] {
+            let c = box_centre_px(&outline, centre, theta);
+            let (s, co) = theta.sin_cos();
+            // the crop offset of a view pixel p about the crop centre c: M^T (p - c)
+            let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+            for y in 0..h {
+                for x in 0..w {
+                    if depth.data_m[y * w + x] > 0.0 {
+                        let u = [x as f64 - c[0], y as f64 - c[1]];
+                        let o = [co * u[0] - s * u[1], s * u[0] + co * u[1]];
+                        for a in 0..2 {
+                            lo[a] = lo[a].min(o[a]);
+                            hi[a] = hi[a].max(o[a]);
+                        }
+                    }
+                }
+            }
+            for a in 0..2 {
+                assert!(
+                    (lo[a] + hi[a]).abs() < 1e-9,
+                    "theta {theta}, axis {a}: {} to {}",
+                    lo[a],
+                    hi[a]
+                );
+            }
+            // and the crop the sampler takes there has the silhouette's cells in its middle
+            let layout = CodebookConfig::default().layout();
+            let f = layout.feature_px;
+            let (mut out, mut mask) = (vec![0f32; layout.dim()], vec![false; layout.dim()]);
+            let p = CropParams {
+                centre_px: c,
+                side_px: 64.0,
+                rotation_rad: theta,
+                z_centre_m: 1.0,
+                box_m: 1.0,
+                zero_is_far: true,
+            };
+            sample_crop(&layout, &depth, None, &p, &mut out, &mut mask);
+            let cells: Vec<(usize, usize)> = (0..f * f).filter(|&i| out[i] < 0.75).map(|i| (i / f, i % f)).collect();
+            let span = |a: fn(&(usize, usize)) -> usize| {
+                let v: Vec<usize> = cells.iter().map(a).collect();
+                (v.iter().min().copied().unwrap_or(0) + v.iter().max().copied().unwrap_or(0)) as f64
+            };
+            for (axis, sum) in [("rows", span(|c| c.0)), ("columns", span(|c| c.1))] {
+                assert!(
+                    (sum - (f - 1) as f64).abs() <= 2.0,
+                    "theta {theta}: the {axis} span {sum} of {}",
+                    f - 1
+                );
+            }
+        }
+    }
 
     #[test]
     fn gathered_rows_are_the_rows_one_by_one() {

@@ -87,6 +87,13 @@ pub struct ObservationConfig {
     /// projection.
     #[serde(default = "default_box_crops_below_px")]
     pub box_crops_below_px: f32,
+    /// Match the crops aimed at a detector's box against the codebook's box-centred table
+    /// ([`Codebook::box_codes`]: each template centred on its silhouette's box, as the
+    /// detector's box centres the object), not the origin-centred one; then any mesh is
+    /// cropped at the box, wherever its origin lies. False (the default; left out of the
+    /// serialised settings): the origin-centred table.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub box_codes: bool,
 }
 
 /// How a detection's box weighs the particles of a view: a Gaussian on the distance (pixels)
@@ -134,6 +141,7 @@ impl Default for ObservationConfig {
             full_area_px: 0.0,
             detection_box: default_detection_box(),
             box_crops_below_px: default_box_crops_below_px(),
+            box_codes: false,
         }
     }
 }
@@ -444,6 +452,7 @@ pub fn view_evidence(
     central_depth: &[f32],
     positions_in_view_m: &[Vector3<f64>],
     config: &ObservationConfig,
+    box_centred: bool,
 ) -> Option<ViewEvidence> {
     let n = positions_in_view_m.len();
     let best = best_per_particle
@@ -460,14 +469,13 @@ pub fn view_evidence(
     let inv_best: Vec<f32> = valid.iter().map(|v| if *v { 1.0 / best } else { 0.0 }).collect();
     // depth check (PoseRBPF renders at the mean pose; we compare the crop's central surface
     // depth with that of the particle's best template): error (m) = (observed - template) * box
-    let n_inplane = codebook.grid.n_inplane();
     let box_m = codebook.box_m() as f32;
     let depth_log: Vec<f32> = (0..n)
         .map(|p| {
             if !valid[p] || arg[p] == u32::MAX {
                 return config.depth_floor;
             }
-            let tmpl = codebook.median_depth_norm[arg[p] as usize / n_inplane];
+            let tmpl = codebook.central_depth_norm(arg[p] as usize, box_centred);
             let obs = central_depth[p];
             if !obs.is_finite() || !tmpl.is_finite() {
                 return config.depth_floor;
@@ -511,7 +519,17 @@ pub fn observe_view(
     let (mx, arg) = match_codes(codebook, &codes, n, sim);
     let matching_s = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
-    let mut ev = view_evidence(codebook, sim, &mx, &arg, &valid, &score, positions_in_view_m, config)?;
+    let mut ev = view_evidence(
+        codebook,
+        sim,
+        &mx,
+        &arg,
+        &valid,
+        &score,
+        positions_in_view_m,
+        config,
+        false,
+    )?;
     ev.crops_s = crops_s;
     ev.encoding_s = encoding_s;
     ev.matching_s = matching_s;

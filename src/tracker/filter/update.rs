@@ -30,6 +30,8 @@ struct Encoded {
     size_px: f32,
     /// The object's mean silhouette in pixels there.
     area_px: f32,
+    /// Its crops are centred on a detector's box and matched against the box-centred codes.
+    box_centred: bool,
 }
 
 impl Encoded {
@@ -51,6 +53,7 @@ impl Encoded {
             &self.central_depth,
             &self.positions_in_view_m,
             config,
+            self.box_centred,
         )
         .map(|mut ev| {
             let s = crate::tracker::observation::size_strength(self.size_px, self.area_px, config);
@@ -186,10 +189,11 @@ impl TrackUpdate<'_> {
                 color: frame.color.as_ref(),
             };
             let size_px = crate::tracker::observation::object_size_px(&codebook, &frame.intrinsics, mean_view.z) as f32;
-            let aimed = (size_px < obs_cfg.box_crops_below_px && self.models[mi].box_centred)
+            let aimed = (size_px < obs_cfg.box_crops_below_px && (obs_cfg.box_codes || self.models[mi].box_centred))
                 .then_some(object_box)
                 .flatten()
                 .map(|(centre, _)| crate::tracker::observation::box_aimed(&frame.intrinsics, centre, &positions));
+            let box_centred = aimed.is_some() && obs_cfg.box_codes;
             let (codes, valid, central_depth, crops_s, encoding_s) =
                 encode_particles(&codebook, &img, aimed.as_deref().unwrap_or(&positions));
             report.timings.crops_s += crops_s;
@@ -210,6 +214,7 @@ impl TrackUpdate<'_> {
                 q,
                 dense_map: None,
                 size_px,
+                box_centred,
                 area_px: crate::tracker::observation::object_area_px(
                     self.models[mi].silhouette_m2,
                     &frame.intrinsics,
@@ -273,7 +278,14 @@ impl TrackUpdate<'_> {
         let mut best: Vec<(Vec<f32>, Vec<u32>)> = Vec::with_capacity(encoded.len());
         for (e, map) in encoded.iter().zip(&maps) {
             let mut sim = self.sims.pop().unwrap_or_default();
-            best.push(match_rows(&e.codes, &codebook.codes, n, kd, map, &mut sim));
+            best.push(match_rows(
+                &e.codes,
+                codebook.table(e.box_centred),
+                n,
+                kd,
+                map,
+                &mut sim,
+            ));
             sims.push(sim);
         }
         report.timings.matching_s += t0.elapsed().as_secs_f64();
@@ -335,7 +347,7 @@ impl TrackUpdate<'_> {
                 for (k, e) in encoded.iter().enumerate() {
                     let extra = map_of(e, &refine);
                     let mut more = Vec::new();
-                    let (mx, arg) = match_rows(&e.codes, &codebook.codes, n, kd, &extra, &mut more);
+                    let (mx, arg) = match_rows(&e.codes, codebook.table(e.box_centred), n, kd, &extra, &mut more);
                     sims[k].extend_from_slice(&more);
                     maps[k].extend(extra);
                     for p in 0..n {
@@ -539,7 +551,7 @@ impl TrackUpdate<'_> {
                 .map_init(
                     || vec![0f32; kd],
                     |row, b| {
-                        codebook.codes.row_into(b, row);
+                        codebook.table(e.box_centred).row_into(b, row);
                         row.iter().zip(code).map(|(a, b)| a * b).sum()
                     },
                 )
