@@ -354,6 +354,22 @@ mod tests {
     }
 
     #[test]
+    fn the_box_centred_codes_off_by_default_can_be_named() {
+        let a =
+            tracker_config_with(&serde_json::json!({"observation": {"box_codes": true, "box_crops_below_px": 90.0}}))
+                .expect("box codes");
+        assert!(a.observation.box_codes);
+        assert!(!TrackerConfig::default().observation.box_codes);
+        let off = serde_json::to_value(TrackerConfig::default()).unwrap();
+        assert!(
+            off["observation"].get("box_codes").is_none(),
+            "box_codes off stays out of the settings"
+        );
+        let back: TrackerConfig = serde_json::from_value(serde_json::to_value(&a).unwrap()).unwrap();
+        assert_eq!(back.observation, a.observation);
+    }
+
+    #[test]
     fn the_near_twins_off_by_default_can_be_named() {
         let a = tracker_config_with(
             &serde_json::json!({"twins": {"near_max_trimmed_rel": 0.021, "near_min_object_px": 90.0}}),

@@ -81,17 +81,18 @@ pub struct ObservationConfig {
     /// the particle's own depth ([`box_aimed`]), not at the particle's projection: at 25 px a
     /// particle a few centimetres off crops the object several pixels off centre, and such a
     /// crop matches wrong rotations. The view's rotation evidence is then the same for all
-    /// particles; where they are comes from its box and depth terms. Only for a mesh whose
-    /// origin is near its bounding box's centre (the codebook centres its crops on the origin,
-    /// a box centre sits on the silhouette). 60 by default; 0: every crop at its particle's
-    /// projection.
+    /// particles; where they are comes from its box and depth terms. Without the box-centred
+    /// templates ([`Self::box_codes`]), only for a mesh whose origin is near its bounding box's
+    /// centre (a box centre sits on the silhouette). 60 by default; 0: every crop at its
+    /// particle's projection.
     #[serde(default = "default_box_crops_below_px")]
     pub box_crops_below_px: f32,
     /// Match the crops aimed at a detector's box against the codebook's box-centred table
     /// ([`Codebook::box_codes`]: each template centred on its silhouette's box, as the
-    /// detector's box centres the object), not the origin-centred one; then any mesh is
-    /// cropped at the box, wherever its origin lies. False (the default; left out of the
-    /// serialised settings): the origin-centred table.
+    /// detector's box centres the object), not the origin-centred one (a banana's box centre
+    /// lies up to a quarter of the crop off its origin); then any mesh is cropped at the box,
+    /// wherever its origin lies. False (the default; left out of the serialised settings, so
+    /// that the shipped map's hash holds): the origin-centred table.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub box_codes: bool,
 }
