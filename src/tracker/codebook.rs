@@ -519,41 +519,42 @@ impl Codebook {
             config.seed,
         )?;
 
-        // codes of every bin: one viewpoint (all in-plane rotations) per task
+        // codes of every bin, one viewpoint (all in-plane rotations) per task, each template
+        // centred where `centre_of(viewpoint, theta)` says; with `medians`, the central median
+        // depth of each template too
         let kd = encoder.code_dim;
         let ni = grid.n_inplane();
-        let mut codes = vec![0f32; grid.len() * kd];
-        codes.par_chunks_mut(ni * kd).enumerate().for_each(|(v, out)| {
-            let mut x = vec![0f32; ni * d];
-            let mut mask = vec![false; d];
-            for i in 0..ni {
-                template(v, i as f64 * step, &mut x[i * d..(i + 1) * d], &mut mask);
-            }
-            encoder.encode_templates(&x, ni, out);
-        });
+        let encode_bins = |centre_of: &(dyn Fn(usize, f64) -> [f64; 2] + Sync), medians: bool| {
+            let mut codes = vec![0f32; grid.len() * kd];
+            let med: Vec<Vec<f32>> = codes
+                .par_chunks_mut(ni * kd)
+                .enumerate()
+                .map(|(v, out)| {
+                    let mut x = vec![0f32; ni * d];
+                    let mut mask = vec![false; d];
+                    let mut m = Vec::new();
+                    for i in 0..ni {
+                        let theta = i as f64 * step;
+                        let row = &mut x[i * d..(i + 1) * d];
+                        template_at(v, theta, centre_of(v, theta), row, &mut mask);
+                        if medians {
+                            m.push(crate::tracker::crop::central_median_depth(&layout, row, &mask).unwrap_or(f32::NAN));
+                        }
+                    }
+                    encoder.encode_templates(&x, ni, out);
+                    m
+                })
+                .collect();
+            (codes, med.concat())
+        };
+        let (codes, _) = encode_bins(&|_, _| centre, false);
         // the same bins with each template centred on its silhouette's box
         let outlines: Vec<Vec<[f64; 2]>> = views
             .par_iter()
             .map(|(dimg, _)| outline_offsets(dimg, centre))
             .collect();
-        let mut box_codes = vec![0f32; grid.len() * kd];
-        let mut box_median_depth_norm = vec![f32::NAN; grid.len()];
-        box_codes
-            .par_chunks_mut(ni * kd)
-            .zip(box_median_depth_norm.par_chunks_mut(ni))
-            .enumerate()
-            .for_each(|(v, (out, med))| {
-                let mut x = vec![0f32; ni * d];
-                let mut mask = vec![false; d];
-                for (i, m) in med.iter_mut().enumerate() {
-                    let theta = i as f64 * step;
-                    let c = box_centre_px(&outlines[v], centre, theta);
-                    let row = &mut x[i * d..(i + 1) * d];
-                    template_at(v, theta, c, row, &mut mask);
-                    *m = crate::tracker::crop::central_median_depth(&layout, row, &mask).unwrap_or(f32::NAN);
-                }
-                encoder.encode_templates(&x, ni, out);
-            });
+        let (box_codes, box_median_depth_norm) =
+            encode_bins(&|v, theta| box_centre_px(&outlines[v], centre, theta), true);
         let median_depth_norm: Vec<f32> = (0..grid.n_viewpoints())
             .into_par_iter()
             .map(|v| {
@@ -1002,7 +1003,7 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
     ];
     for (i, n) in sizes.into_iter().enumerate() {
         if i == 4 || i == 6 {
-            tables[i / 6].values = r.f32s_as_f16(n).map_err(bad)?;
+            tables[usize::from(i == 6)].values = r.f32s_as_f16(n).map_err(bad)?;
             arrays.push(Vec::new());
         } else {
             arrays.push(r.f32s(n).map_err(bad)?);
