@@ -85,6 +85,48 @@ fn cache_hits_and_invalidation() {
     assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
 }
 
+/// The box-centred table is built only when asked for (`box_table`, derived from the tracker's
+/// `observation.box_codes`); a book with it and one without are separate cache files, both
+/// round-trip, and the flag stays out of the serialised settings.
+#[test]
+fn the_box_centred_table_is_built_and_cached_only_when_asked_for() {
+    let dir = tempfile::tempdir().unwrap();
+    let mesh = pregrasp::mesh::builtin("mug").unwrap();
+    let grid = RotationGrid::new(30).unwrap();
+    let plain = tiny_config();
+    let boxed = CodebookConfig {
+        box_table: true,
+        ..plain.clone()
+    };
+    assert_eq!(
+        serde_json::to_string(&plain).unwrap(),
+        serde_json::to_string(&boxed).unwrap(),
+        "a derived flag, not a setting"
+    );
+    let src = CpuViews(&mesh);
+    let a = Codebook::load_or_build_with(&src, &mesh, grid, &plain, Some(dir.path())).unwrap();
+    assert!(a.box_table.is_none());
+    let b = Codebook::load_or_build_with(&src, &mesh, grid, &boxed, Some(dir.path())).unwrap();
+    assert!(!b.from_cache, "the plain book's file must not answer for the boxed one");
+    let table = b.box_table.as_ref().expect("the box table");
+    assert_eq!(table.codes.to_f32().len(), a.codes.to_f32().len());
+    assert_eq!(table.median_depth_norm.len(), grid.len());
+    assert_ne!(table.codes, a.codes, "the mug's box is off its origin");
+    assert_eq!(b.codes, a.codes, "the origin-centred table is the same either way");
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
+    for (cfg, has) in [(&plain, false), (&boxed, true)] {
+        let c = Codebook::load_or_build_with(&src, &mesh, grid, cfg, Some(dir.path())).unwrap();
+        assert!(c.from_cache);
+        assert_eq!(c.box_table.is_some(), has);
+        assert_eq!(c.config, *cfg);
+    }
+    let c = Codebook::load_or_build_with(&src, &mesh, grid, &boxed, Some(dir.path())).unwrap();
+    assert_eq!(c.box_table.unwrap().codes, table.codes);
+    // without the table, a box-centred lookup falls back to the origin-centred codes
+    assert_eq!(*a.table(true), a.codes);
+    assert_eq!(*b.table(true), table.codes);
+}
+
 #[test]
 fn codes_are_unit_and_in_plane_bins_are_image_rotations() {
     let mesh = pregrasp::mesh::builtin("box").unwrap();

@@ -814,7 +814,16 @@ fn a_crop_at_the_box_matches_the_box_centred_template_of_its_rotation() {
         offset > 0.05,
         "the origin {offset} of the diameter off the box's centre"
     );
-    let cb = coarse_codebook(&mesh);
+    let cb = pregrasp::tracker::Codebook::build(
+        &pregrasp::tracker::codebook::CpuViews(&mesh),
+        &mesh,
+        pregrasp::geometry::RotationGrid::new(10).unwrap(),
+        &pregrasp::tracker::CodebookConfig {
+            box_table: true,
+            ..pregrasp::tracker::CodebookConfig::coarse()
+        },
+    )
+    .unwrap();
     let world_from_mug = on_table(&mesh, 0.0, 0.0, 0.0);
     let scene = Scene::new(vec![("mug".into(), mesh.clone(), world_from_mug)]);
     let cam = look_at([0.0, -0.6, 0.3], [0.0, 0.0, 0.045]);

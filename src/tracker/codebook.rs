@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 const MAGIC: &[u8; 8] = b"PGCODEBK";
-const FORMAT_VERSION: u32 = 4;
+const FORMAT_VERSION: u32 = 5;
 
 /// How a codebook is built.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -77,6 +77,12 @@ pub struct CodebookConfig {
     /// Weight of the colour cosine in the similarity (the depth's is `1 - color_code_weight`).
     #[serde(default = "default_color_code_weight")]
     pub color_code_weight: f32,
+    /// Also build the box-centred code table ([`Codebook::box_table`]). Derived from the
+    /// tracker's `observation.box_codes` where codebooks are requested, not a setting of its own:
+    /// left out of the serialised form (and so of the calibration map's settings hash); the
+    /// cache keeps books with and without the table apart.
+    #[serde(skip)]
+    pub box_table: bool,
 }
 
 fn default_color_code_dim() -> usize {
@@ -119,6 +125,7 @@ impl Default for CodebookConfig {
             color_features: ColorFeatures::default(),
             color_code_dim: default_color_code_dim(),
             color_code_weight: default_color_code_weight(),
+            box_table: false,
         }
     }
 }
@@ -191,6 +198,8 @@ struct Header {
     n_bins: usize,
     /// The encoder's code blocks (empty: one code).
     blocks: Vec<CodeBlock>,
+    /// Whether the box-centred table follows (the config's own flag is not serialised).
+    box_table: bool,
 }
 
 /// Codebook rows stored as half floats: half the memory of f32, and a code's similarity to a
@@ -300,16 +309,22 @@ pub struct Codebook {
     /// Per viewpoint: median normalised depth of the template's central surface
     /// ([`crate::tracker::crop::central_median_depth`]; NaN when none).
     pub median_depth_norm: Vec<f32>,
-    /// The codes of every bin with its template centred on the box of its silhouette (in the
-    /// crop's axes) instead of on the mesh's origin: what a crop centred on a detector's box
-    /// is matched against ([`crate::tracker::observation::ObservationConfig::box_codes`]).
-    pub box_codes: Codes,
-    /// Per bin: the central median normalised depth of the box-centred template (NaN: none).
-    pub box_median_depth_norm: Vec<f32>,
+    /// The box-centred table, built when [`CodebookConfig::box_table`] asks for it.
+    pub box_table: Option<BoxTable>,
     /// Seconds the build took (0 when loaded from the cache).
     pub build_seconds: f64,
     /// True when it came from the cache.
     pub from_cache: bool,
+}
+
+/// The codes of every bin with its template centred on the box of its silhouette (in the
+/// crop's axes) instead of on the mesh's origin: what a crop centred on a detector's box is
+/// matched against ([`crate::tracker::observation::ObservationConfig::box_codes`]).
+#[derive(Debug, Clone)]
+pub struct BoxTable {
+    pub codes: Codes,
+    /// Per bin: the central median normalised depth of the box-centred template (NaN: none).
+    pub median_depth_norm: Vec<f32>,
 }
 
 impl Codebook {
@@ -331,16 +346,18 @@ impl Codebook {
         self.diameter_m
     }
     /// The code table crops are matched against: the box-centred one for crops centred on a
-    /// detector's box, the origin-centred one otherwise.
+    /// detector's box (when it was built), the origin-centred one otherwise.
     pub fn table(&self, box_centred: bool) -> &Codes {
-        if box_centred { &self.box_codes } else { &self.codes }
+        match (&self.box_table, box_centred) {
+            (Some(b), true) => &b.codes,
+            _ => &self.codes,
+        }
     }
     /// The central median normalised depth of `bin`'s template in that table (NaN: none).
     pub fn central_depth_norm(&self, bin: usize, box_centred: bool) -> f32 {
-        if box_centred {
-            self.box_median_depth_norm[bin]
-        } else {
-            self.median_depth_norm[bin / self.grid.n_inplane()]
+        match (&self.box_table, box_centred) {
+            (Some(b), true) => b.median_depth_norm[bin],
+            _ => self.median_depth_norm[bin / self.grid.n_inplane()],
         }
     }
     /// The code of `bin`.
@@ -548,13 +565,19 @@ impl Codebook {
             (codes, med.concat())
         };
         let (codes, _) = encode_bins(&|_, _| centre, false);
-        // the same bins with each template centred on its silhouette's box
-        let outlines: Vec<Vec<[f64; 2]>> = views
-            .par_iter()
-            .map(|(dimg, _)| outline_offsets(dimg, centre))
-            .collect();
-        let (box_codes, box_median_depth_norm) =
-            encode_bins(&|v, theta| box_centre_px(&outlines[v], centre, theta), true);
+        // the same bins with each template centred on its silhouette's box, when asked for
+        let box_table = config.box_table.then(|| {
+            let outlines: Vec<Vec<[f64; 2]>> = views
+                .par_iter()
+                .map(|(dimg, _)| outline_offsets(dimg, centre))
+                .collect();
+            let (box_codes, median_depth_norm) =
+                encode_bins(&|v, theta| box_centre_px(&outlines[v], centre, theta), true);
+            BoxTable {
+                codes: Codes::from_f32(&box_codes, kd),
+                median_depth_norm,
+            }
+        });
         let median_depth_norm: Vec<f32> = (0..grid.n_viewpoints())
             .into_par_iter()
             .map(|v| {
@@ -572,8 +595,7 @@ impl Codebook {
             encoder,
             codes: Codes::from_f32(&codes, kd),
             median_depth_norm,
-            box_codes: Codes::from_f32(&box_codes, kd),
-            box_median_depth_norm,
+            box_table,
             build_seconds: t0.elapsed().as_secs_f64(),
             from_cache: false,
         })
@@ -789,6 +811,10 @@ fn cache_path(dir: &Path, hash: &str, grid: RotationGrid, config: &CodebookConfi
     let cfg = serde_json::to_string(config).unwrap_or_default();
     let mut h = Sha256::new();
     h.update(cfg.as_bytes());
+    // a book with the box-centred table and one without are different files
+    if config.box_table {
+        h.update(b"box_table");
+    }
     let ch: String = h.finalize().iter().take(6).map(|b| format!("{b:02x}")).collect();
     let short = &hash[..hash.len().min(16)];
     dir.join(format!(
@@ -900,6 +926,7 @@ fn write_cache(path: &Path, cb: &Codebook) -> Result<(), TrackerError> {
         code_dim: cb.encoder.code_dim,
         n_bins: cb.grid.len(),
         blocks: cb.encoder.blocks.clone(),
+        box_table: cb.box_table.is_some(),
     };
     let hj = serde_json::to_vec(&header).map_err(|e| TrackerError::Config(e.to_string()))?;
     let tmp = path.with_extension(format!("tmp{}", std::process::id()));
@@ -918,11 +945,16 @@ fn write_cache(path: &Path, cb: &Codebook) -> Result<(), TrackerError> {
         &cb.encoder.ridge_t,
         &cb.codes.to_f32(),
         &cb.median_depth_norm,
-        &cb.box_codes.to_f32(),
-        &cb.box_median_depth_norm,
     ] {
         w.put_f32s(v)?;
     }
+    // the box-centred table, or two empty arrays without it
+    let (box_codes, box_depths) = match &cb.box_table {
+        Some(b) => (b.codes.to_f32(), b.median_depth_norm.clone()),
+        None => (Vec::new(), Vec::new()),
+    };
+    w.put_f32s(&box_codes)?;
+    w.put_f32s(&box_depths)?;
     let sum = w.hasher.finalize();
     w.inner.write_all(&sum)?;
     w.inner.into_inner().map_err(|e| e.into_error())?.sync_all()?;
@@ -962,7 +994,8 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
     }
     let mut hj = vec![0u8; hl];
     r.take(&mut hj).map_err(|_| bad("truncated header"))?;
-    let header: Header = serde_json::from_slice(&hj).map_err(|e| bad(&e.to_string()))?;
+    let mut header: Header = serde_json::from_slice(&hj).map_err(|e| bad(&e.to_string()))?;
+    header.config.box_table = header.box_table;
     if header.mesh_hash != hash
         || header.grid_step_deg != grid.step_deg()
         || header.encoder_version != ENCODER_VERSION
@@ -979,6 +1012,7 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
     {
         return Err(bad("code blocks out of range"));
     }
+    let box_bins = if header.box_table { header.n_bins } else { 0 };
     let sizes = [
         d,
         d,
@@ -986,8 +1020,8 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
         d.saturating_mul(k),
         header.n_bins.saturating_mul(k),
         grid.n_viewpoints(),
-        header.n_bins.saturating_mul(k),
-        header.n_bins,
+        box_bins.saturating_mul(k),
+        box_bins,
     ];
     // the two code tables (indices 4 and 6) go to half floats chunk by chunk: no full f32 copy
     let mut arrays = Vec::with_capacity(sizes.len());
@@ -1031,6 +1065,10 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
     if codes.values.iter().chain(&box_codes.values).any(|v| !v.is_finite()) {
         return Err(bad("non-finite codes"));
     }
+    let box_table = header.box_table.then_some(BoxTable {
+        codes: box_codes,
+        median_depth_norm: box_median_depth_norm,
+    });
     Ok(Codebook {
         grid,
         config: header.config,
@@ -1047,8 +1085,7 @@ fn read_cache(path: &Path, hash: &str, grid: RotationGrid, config: &CodebookConf
         },
         codes,
         median_depth_norm,
-        box_codes,
-        box_median_depth_norm,
+        box_table,
         build_seconds: 0.0,
         from_cache: true,
     })

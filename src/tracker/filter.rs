@@ -594,6 +594,12 @@ impl Tracker {
 
     /// Registers an object model (detections name it by `name`).
     pub fn add_object_model(&mut self, name: &str, mesh: Mesh, codebook: Arc<Codebook>) {
+        if self.config.observation.box_codes && codebook.box_table.is_none() {
+            tracing::warn!(
+                "{name}: observation.box_codes is on but its codebook has no box-centred table \
+                 (built without codebook.box_table); its crops are matched as with box_codes off"
+            );
+        }
         let grid = codebook.grid;
         let (tables, lattice) = match self.tables.iter().find(|t| t.0.grid == grid) {
             Some(t) => t.clone(),

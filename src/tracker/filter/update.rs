@@ -189,11 +189,13 @@ impl TrackUpdate<'_> {
                 color: frame.color.as_ref(),
             };
             let size_px = crate::tracker::observation::object_size_px(&codebook, &frame.intrinsics, mean_view.z) as f32;
-            let aimed = (size_px < obs_cfg.box_crops_below_px && (obs_cfg.box_codes || self.models[mi].box_centred))
+            // box codes only with the table to match them against (without it, as if off)
+            let box_codes = obs_cfg.box_codes && codebook.box_table.is_some();
+            let aimed = (size_px < obs_cfg.box_crops_below_px && (box_codes || self.models[mi].box_centred))
                 .then_some(object_box)
                 .flatten()
                 .map(|(centre, _)| crate::tracker::observation::box_aimed(&frame.intrinsics, centre, &positions));
-            let box_centred = aimed.is_some() && obs_cfg.box_codes;
+            let box_centred = aimed.is_some() && box_codes;
             let (codes, valid, central_depth, crops_s, encoding_s) =
                 encode_particles(&codebook, &img, aimed.as_deref().unwrap_or(&positions));
             report.timings.crops_s += crops_s;
