@@ -88,11 +88,12 @@ pub struct ObservationConfig {
     #[serde(default = "default_box_crops_below_px")]
     pub box_crops_below_px: f32,
     /// Match the crops aimed at a detector's box against the codebook's box-centred table
-    /// ([`Codebook::box_codes`]: each template centred on its silhouette's box, as the
+    /// ([`crate::tracker::codebook::BoxTable`]: each template centred on its silhouette's box, as the
     /// detector's box centres the object), not the origin-centred one (a banana's box centre
     /// lies up to a quarter of the crop off its origin); then any mesh is cropped at the box,
     /// wherever its origin lies. False (the default; left out of the serialised settings, so
-    /// that the shipped map's hash holds): the origin-centred table.
+    /// that the shipped map's hash holds): the origin-centred table, and codebooks are built
+    /// without the box-centred one.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub box_codes: bool,
 }
