@@ -43,4 +43,4 @@ EVAL=(eval --cache cache --models "$MODELS" --grid-step-deg 5 --only-target --de
 "$P" "${EVAL[@]}" --data T4 --out T4-eval
 "$P" "${EVAL[@]}" --data "$R" --out "$R-eval"
 "$P" calibrate --fit T-eval/decisions.json T2-eval/decisions.json T3-eval/decisions.json T4-eval/decisions.json --report "$R-eval/decisions.json" \
-  --map "$ROOT/src/grasp/calibration_map.json" --out calibrate.json
+  --map "$ROOT/src/grasp/calibration_map.json" --out calibrate.json --limit-confidence 0.99

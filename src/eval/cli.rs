@@ -134,7 +134,6 @@ pub fn tracker_config_with(overrides: &serde_json::Value) -> anyhow::Result<Trac
     full["support"] = serde_json::to_value(crate::tracker::support::SupportConfig::default())?;
     // off by default and then left out of the settings (their hash stays that of the map)
     full["observation"]["full_area_px"] = serde_json::json!(0.0);
-    full["observation"]["box_codes"] = serde_json::json!(false);
     full["twins"]["near_max_trimmed_rel"] = serde_json::json!(0.0);
     full["twins"]["near_min_object_px"] = serde_json::json!(0.0);
     full["verification"]["register_modes"] = serde_json::json!(false);
@@ -354,19 +353,22 @@ mod tests {
     }
 
     #[test]
-    fn the_box_centred_codes_off_by_default_can_be_named() {
-        let a =
-            tracker_config_with(&serde_json::json!({"observation": {"box_codes": true, "box_crops_below_px": 90.0}}))
-                .expect("box codes");
-        assert!(a.observation.box_codes);
-        assert!(!TrackerConfig::default().observation.box_codes);
-        let off = serde_json::to_value(TrackerConfig::default()).unwrap();
-        assert!(
-            off["observation"].get("box_codes").is_none(),
-            "box_codes off stays out of the settings"
+    fn the_box_centred_codes_on_by_default_can_be_switched_off() {
+        assert!(TrackerConfig::default().observation.box_codes);
+        let on = serde_json::to_value(TrackerConfig::default()).unwrap();
+        assert_eq!(
+            on["observation"]["box_codes"], true,
+            "part of the settings (and the map's hash)"
         );
+        let a = tracker_config_with(&serde_json::json!({"observation": {"box_codes": false}})).expect("box codes off");
+        assert!(!a.observation.box_codes);
         let back: TrackerConfig = serde_json::from_value(serde_json::to_value(&a).unwrap()).unwrap();
         assert_eq!(back.observation, a.observation);
+        // a settings file written before the field existed reads as the default
+        let mut old = on.clone();
+        old["observation"].as_object_mut().unwrap().remove("box_codes");
+        let read: TrackerConfig = serde_json::from_value(old).unwrap();
+        assert!(read.observation.box_codes);
     }
 
     #[test]

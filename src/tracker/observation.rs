@@ -91,10 +91,9 @@ pub struct ObservationConfig {
     /// ([`crate::tracker::codebook::BoxTable`]: each template centred on its silhouette's box, as the
     /// detector's box centres the object), not the origin-centred one (a banana's box centre
     /// lies up to a quarter of the crop off its origin); then any mesh is cropped at the box,
-    /// wherever its origin lies. False (the default; left out of the serialised settings, so
-    /// that the shipped map's hash holds): the origin-centred table, and codebooks are built
-    /// without the box-centred one.
-    #[serde(default, skip_serializing_if = "is_zero")]
+    /// wherever its origin lies. True by default; false: the origin-centred table, and
+    /// codebooks are built without the box-centred one.
+    #[serde(default = "default_true")]
     pub box_codes: bool,
 }
 
@@ -143,7 +142,7 @@ impl Default for ObservationConfig {
             full_area_px: 0.0,
             detection_box: default_detection_box(),
             box_crops_below_px: default_box_crops_below_px(),
-            box_codes: false,
+            box_codes: true,
         }
     }
 }
@@ -305,6 +304,10 @@ fn default_full_size_px() -> f32 {
 }
 
 /// Whether a setting is at zero, its "off" (left out of the serialised settings then).
+fn default_true() -> bool {
+    true
+}
+
 pub(crate) fn is_zero<T: Default + PartialEq>(x: &T) -> bool {
     *x == T::default()
 }
