@@ -169,10 +169,7 @@ impl ModelStore {
         }
         let grid = RotationGrid::new(cfg.grid_step_deg).map_err(|e| EvalError::Config(e.to_string()))?;
         let t0 = Instant::now();
-        let book_cfg = CodebookConfig {
-            box_table: cfg.codebook.box_table || cfg.tracker.observation.box_codes,
-            ..cfg.codebook.clone()
-        };
+        let book_cfg = cfg.tracker.codebook_config(&cfg.codebook);
         let codebook = Codebook::load_or_build(renderer, &mesh, grid, &book_cfg, cfg.cache_dir.as_deref())
             .map_err(|e| EvalError::Tracker(e.to_string()))?;
         *self.codebook_s.entry(name.to_string()).or_default() += t0.elapsed().as_secs_f64();

@@ -145,9 +145,7 @@ fn build(
     let object_id = &tag.object_id;
     let config = &CodebookConfig {
         use_color: config.use_color && tag.use_color,
-        // the box-centred table only where the tracker matches crops against it
-        box_table: config.box_table || state.config.tracker.observation.box_codes,
-        ..config.clone()
+        ..state.config.tracker.codebook_config(config)
     };
     let grid = RotationGrid::new(step_deg).map_err(|e| BuildError::Failed(e.to_string()))?;
     let cache = state.config.data_dir.join("codebooks");

@@ -78,7 +78,8 @@ pub struct CodebookConfig {
     #[serde(default = "default_color_code_weight")]
     pub color_code_weight: f32,
     /// Also build the box-centred code table ([`Codebook::box_table`]). Derived from the
-    /// tracker's `observation.box_codes` where codebooks are requested, not a setting of its own:
+    /// tracker's settings where codebooks are requested
+    /// ([`crate::tracker::TrackerConfig::codebook_config`]), not a setting of its own:
     /// left out of the serialised form (and so of the calibration map's settings hash); the
     /// cache keeps books with and without the table apart.
     #[serde(skip)]
@@ -949,12 +950,8 @@ fn write_cache(path: &Path, cb: &Codebook) -> Result<(), TrackerError> {
         w.put_f32s(v)?;
     }
     // the box-centred table, or two empty arrays without it
-    let (box_codes, box_depths) = match &cb.box_table {
-        Some(b) => (b.codes.to_f32(), b.median_depth_norm.clone()),
-        None => (Vec::new(), Vec::new()),
-    };
-    w.put_f32s(&box_codes)?;
-    w.put_f32s(&box_depths)?;
+    w.put_f32s(&cb.box_table.as_ref().map(|b| b.codes.to_f32()).unwrap_or_default())?;
+    w.put_f32s(cb.box_table.as_ref().map_or(&[], |b| &b.median_depth_norm))?;
     let sum = w.hasher.finalize();
     w.inner.write_all(&sum)?;
     w.inner.into_inner().map_err(|e| e.into_error())?.sync_all()?;

@@ -396,6 +396,18 @@ impl TrackerConfig {
             ..Self::default()
         }
     }
+
+    /// `base` with what this tracker's matching needs of a codebook: the box-centred table
+    /// where it matches crops against it (`observation.box_codes`).
+    pub fn codebook_config(
+        &self,
+        base: &crate::tracker::codebook::CodebookConfig,
+    ) -> crate::tracker::codebook::CodebookConfig {
+        crate::tracker::codebook::CodebookConfig {
+            box_table: base.box_table || self.observation.box_codes,
+            ..base.clone()
+        }
+    }
 }
 
 /// Directions the mean silhouette of a model is averaged over: few enough to measure once per
