@@ -37,6 +37,10 @@ fn main() -> anyhow::Result<()> {
     let config = VerificationConfig {
         depth_sigma_m: arg(5, VerificationConfig::default().depth_sigma_m)?,
         max_side_px: std::env::var("MAX_SIDE").map_or(Ok(VerificationConfig::default().max_side_px), |s| s.parse())?,
+        occlusion_truncation: std::env::var("OCC")
+            .map_or(Ok(VerificationConfig::default().occlusion_truncation), |s| s.parse())?,
+        pixels_per_observation: std::env::var("PPO")
+            .map_or(Ok(VerificationConfig::default().pixels_per_observation), |s| s.parse())?,
         ..VerificationConfig::default()
     };
     let use_box = arg(6, 1.0)? > 0.0;
@@ -50,6 +54,8 @@ fn main() -> anyhow::Result<()> {
     let register = std::env::var("REGISTER").is_ok_and(|s| s == "1");
     let turns = [Vector3::x(), Vector3::y(), Vector3::z()].map(|a| UnitQuaternion::from_scaled_axis(a * turn_rad));
     let (mut all_wins, mut all_n) = ([0usize; 3], 0usize);
+    // the truth's lead over its turn about z, per view (nats)
+    let mut leads_z: Vec<f64> = Vec::new();
     for seq_dir in find_sequences(std::path::Path::new(&dir))? {
         let seq = Sequence::open(&seq_dir)?;
         let Some(target) = seq.rig.target.clone() else { continue };
@@ -74,6 +80,13 @@ fn main() -> anyhow::Result<()> {
                 }
                 let mut placed = gt.camera_from_object;
                 placed.translation.vector += Vector3::from_fn(|_, _| normal.sample(&mut rng) * error_m);
+                // `ROT_ERR_DEG`: each hypothesis's rotation off by about this much (a mode's mean)
+                let rot_err = std::env::var("ROT_ERR_DEG")
+                    .map_or(0.0, |s| s.parse::<f64>().unwrap_or(0.0))
+                    .to_radians();
+                placed.rotation *= UnitQuaternion::from_scaled_axis(
+                    Vector3::from_fn(|_, _| normal.sample(&mut rng)) * (rot_err / 3f64.sqrt()),
+                );
                 let mut hypotheses = vec![placed];
                 hypotheses.extend(
                     turns
@@ -117,6 +130,7 @@ fn main() -> anyhow::Result<()> {
                 for k in 0..3 {
                     wins[k] += usize::from(s[0] > s[k + 1]);
                 }
+                leads_z.push(s[0] - s[3]);
             }
         }
         println!(
@@ -137,6 +151,19 @@ fn main() -> anyhow::Result<()> {
         all_wins[1],
         all_wins[2],
         all_wins.iter().sum::<usize>() as f64 / (3 * all_n).max(1) as f64
+    );
+    leads_z.sort_by(f64::total_cmp);
+    let q = |p: f64| {
+        leads_z
+            .get(((leads_z.len() as f64 - 1.0) * p).round() as usize)
+            .copied()
+            .unwrap_or(f64::NAN)
+    };
+    println!(
+        "the truth's lead over its z turn, nats: 10th percentile {:.1}, median {:.1}, 90th {:.1}",
+        q(0.1),
+        q(0.5),
+        q(0.9)
     );
     Ok(())
 }
