@@ -11,7 +11,10 @@
 //! every camera. `PLACEMENT_SIGMA_M` is the scorer's placement spread (0: no slide); with
 //! `USE_BOX` 1 the object's visible box bounds the pixels it must explain (as the track's
 //! detection does in the filter).
-//! Nothing here reaches the filter.
+//! Environment: `TURN_DEG` (the turns' angle, 180), `REGISTER=1` (each hypothesis registered to
+//! the depth first), `MAX_SIDE`, `PPO` and `OCC` (the scorer's crop side, pixels per observation
+//! and occluder truncation), `ROT_ERR_DEG` (the hypotheses' rotation error), `EDGE=1` (also the
+//! colour image's gradients on each hypothesis's contours). Nothing here reaches the filter.
 
 use nalgebra::{UnitQuaternion, Vector3};
 use pregrasp::dataset::{Sequence, find_sequences};
@@ -56,6 +59,7 @@ fn main() -> anyhow::Result<()> {
     let (mut all_wins, mut all_n) = ([0usize; 3], 0usize);
     // the truth's lead over its turn about z, per view (nats)
     let mut leads_z: Vec<f64> = Vec::new();
+    let mut edge_leads: Vec<f64> = Vec::new();
     for seq_dir in find_sequences(std::path::Path::new(&dir))? {
         let seq = Sequence::open(&seq_dir)?;
         let Some(target) = seq.rig.target.clone() else { continue };
@@ -131,6 +135,16 @@ fn main() -> anyhow::Result<()> {
                     wins[k] += usize::from(s[0] > s[k + 1]);
                 }
                 leads_z.push(s[0] - s[3]);
+                // `EDGE=1`: the colour image's gradients on each hypothesis's rendered contours
+                if std::env::var("EDGE").is_ok_and(|s| s == "1")
+                    && let (Some(rgb), Some(b)) = (seq.load_rgb(camera, f)?, object_box)
+                {
+                    let e: Vec<f64> = hypotheses
+                        .iter()
+                        .map(|h| edge_score(&mesh, &meta.intrinsics, &rgb, *h, b))
+                        .collect();
+                    edge_leads.push(e[0] - e[3]);
+                }
             }
         }
         println!(
@@ -152,6 +166,18 @@ fn main() -> anyhow::Result<()> {
         all_wins[2],
         all_wins.iter().sum::<usize>() as f64 / (3 * all_n).max(1) as f64
     );
+    edge_leads.sort_by(f64::total_cmp);
+    if !edge_leads.is_empty() {
+        let q = |p: f64| edge_leads[((edge_leads.len() as f64 - 1.0) * p).round() as usize];
+        println!(
+            "edges: the truth's lead over its z turn: 10th percentile {:.3}, median {:.3}, 90th {:.3}; ahead in {} of {}",
+            q(0.1),
+            q(0.5),
+            q(0.9),
+            edge_leads.iter().filter(|l| **l > 0.0).count(),
+            edge_leads.len()
+        );
+    }
     leads_z.sort_by(f64::total_cmp);
     let q = |p: f64| {
         leads_z
@@ -166,4 +192,70 @@ fn main() -> anyhow::Result<()> {
         q(0.9)
     );
     Ok(())
+}
+
+/// The mean gradient magnitude of the grey image (over its mean inside the box grown by a
+/// tenth) on the contours of `pose`'s render (its silhouette's outline and its depth steps over
+/// 1 cm, the handle's ring in front of the body among them), each contour pixel reading the
+/// largest gradient within one pixel.
+fn edge_score(
+    mesh: &pregrasp::mesh::Mesh,
+    k: &pregrasp::camera::Intrinsics,
+    rgb: &pregrasp::camera::ColorImage,
+    pose: Pose,
+    [bx, by, bw, bh]: [f64; 4],
+) -> f64 {
+    let (w, h) = (k.width as i64, k.height as i64);
+    let x0 = ((bx - 0.1 * bw).floor() as i64).clamp(1, w - 2);
+    let x1 = ((bx + 1.1 * bw).ceil() as i64).clamp(1, w - 2);
+    let y0 = ((by - 0.1 * bh).floor() as i64).clamp(1, h - 2);
+    let y1 = ((by + 1.1 * bh).ceil() as i64).clamp(1, h - 2);
+    let grey = |x: i64, y: i64| {
+        let [r, g, b] = rgb.data[(y * w + x) as usize];
+        0.299 * r as f64 + 0.587 * g as f64 + 0.114 * b as f64
+    };
+    let grad = |x: i64, y: i64| {
+        let gx = grey(x + 1, y - 1) + 2.0 * grey(x + 1, y) + grey(x + 1, y + 1)
+            - grey(x - 1, y - 1)
+            - 2.0 * grey(x - 1, y)
+            - grey(x - 1, y + 1);
+        let gy = grey(x - 1, y + 1) + 2.0 * grey(x, y + 1) + grey(x + 1, y + 1)
+            - grey(x - 1, y - 1)
+            - 2.0 * grey(x, y - 1)
+            - grey(x + 1, y - 1);
+        (gx * gx + gy * gy).sqrt()
+    };
+    let mut mean = 0.0;
+    let mut count = 0.0;
+    for y in y0..=y1 {
+        for x in x0..=x1 {
+            mean += grad(x, y);
+            count += 1.0;
+        }
+    }
+    let mean = (mean / count).max(1e-6);
+    let d = pregrasp::render::raster::render(k, &[(mesh, pose)], 0.02, [0, 0, 0]).depth.data_m;
+    let at = |x: i64, y: i64| d[(y * w + x) as usize];
+    let (mut sum, mut n) = (0.0, 0.0);
+    for y in y0.max(2)..=y1.min(h - 3) {
+        for x in x0.max(2)..=x1.min(w - 3) {
+            let z = at(x, y);
+            if z <= 0.0 {
+                continue;
+            }
+            let contour = [(1, 0), (-1, 0), (0, 1), (0, -1)].iter().any(|(dx, dy)| {
+                let o = at(x + dx, y + dy);
+                o <= 0.0 || (o - z).abs() > 0.01
+            });
+            if contour {
+                let best = (-1..=1)
+                    .flat_map(|dy| (-1..=1).map(move |dx| (dx, dy)))
+                    .map(|(dx, dy)| grad(x + dx, y + dy))
+                    .fold(0.0, f64::max);
+                sum += best;
+                n += 1.0;
+            }
+        }
+    }
+    if n > 0.0 { sum / n / mean } else { 0.0 }
 }
