@@ -234,7 +234,9 @@ fn edge_score(
         }
     }
     let mean = (mean / count).max(1e-6);
-    let d = pregrasp::render::raster::render(k, &[(mesh, pose)], 0.02, [0, 0, 0]).depth.data_m;
+    let d = pregrasp::render::raster::render(k, &[(mesh, pose)], 0.02, [0, 0, 0])
+        .depth
+        .data_m;
     let at = |x: i64, y: i64| d[(y * w + x) as usize];
     let (mut sum, mut n) = (0.0, 0.0);
     for y in y0.max(2)..=y1.min(h - 3) {

@@ -3,7 +3,8 @@
 //! or once while the cameras stand still), a wrong start recovered when the cameras see the
 //! object elsewhere, and two instances of one object that do not make a track jump back and
 //! forth; a near, well-matched track blurred less than a poorly matched one; and a track kept
-//! resting on the table by the support prior when the views say nothing of its rotation.
+//! resting on the table by the support prior when the views say nothing of its rotation; the
+//! mug's turned body left for the truth, by twins or by near crops aimed at the detector's box.
 
 #![allow(clippy::unwrap_used)] // test helpers: a failure is a test failure
 
@@ -693,4 +694,81 @@ fn near_twins_turn_the_mustard_bottle_over_only_where_a_view_sees_it_large() {
     };
     let (_, _, _, none) = turned_start_of(mesh, 0.7, turn, &near_cams, Some(far_only));
     assert_eq!(none, 0, "the far limit alone has no twin for the bottle");
+}
+
+/// The rotation's densities at the truth and at the YCB mug's body turned about its own axis
+/// (the track started on that turned joint pose, confident), after ten steps of three near
+/// cameras with detections, no view aimed at the box by its size, and `near_box_rotation`.
+fn turned_mug_with_box_rotation(near_box_rotation: bool) -> (f64, f64) {
+    let mesh = ycb_mug();
+    let turns = pregrasp::symmetry::confusable_turns(&mesh, 0.012 * mesh.diameter_m(), 0.005);
+    let turn = *turns
+        .iter()
+        .find(|t| t.rotation.axis().is_some_and(|a| a.z.abs() > 0.99))
+        .unwrap_or_else(|| panic!("the body's turn about z: {turns:?}"));
+    let cams = [
+        ("a", look_at([0.42, -0.25, 0.3], [0.0, 0.0, 0.045])),
+        ("b", look_at([-0.1, -0.48, 0.28], [0.0, 0.0, 0.045])),
+        ("c", look_at([-0.3, 0.35, 0.3], [0.0, 0.0, 0.045])),
+    ];
+    let grid = pregrasp::geometry::RotationGrid::new(10).unwrap();
+    let book = pregrasp::tracker::codebook::CodebookConfig {
+        box_table: true,
+        ..pregrasp::tracker::codebook::CodebookConfig::coarse()
+    };
+    let cb = std::sync::Arc::new(
+        pregrasp::tracker::Codebook::build(&pregrasp::tracker::codebook::CpuViews(&mesh), &mesh, grid, &book).unwrap(),
+    );
+    let truth_world = on_table(&mesh, 0.0, 0.0, 2.97);
+    let scene = Scene::new(vec![("mug".into(), mesh.clone(), truth_world)]);
+    let mut config = TrackerConfig {
+        max_tracks_per_object: 1,
+        twins: None,
+        ..TrackerConfig::default()
+    };
+    config.observation.box_crops_below_px = 0.0;
+    config.observation.near_box_rotation = near_box_rotation;
+    let mut tracker = Tracker::new(config, stationary(&cams), "a".into());
+    tracker.add_object_model("mug", mesh, cb);
+    let truth = cams[0].1.inverse() * truth_world;
+    let turned = Pose::from_parts(
+        (truth.translation.vector + turn.origin_shift(&truth.rotation)).into(),
+        truth.rotation * turn.rotation,
+    );
+    let id = tracker
+        .start_track(
+            "mug",
+            &TrackPrior {
+                reference_from_object: turned,
+                translation_std_m: 0.004,
+                rotation_std_rad: Some(0.1),
+            },
+        )
+        .unwrap();
+    for step in 0..10u64 {
+        tracker.step(&frames(&cams, &scene, true, step), None).unwrap();
+    }
+    let d = tracker
+        .rotation_densities(id, &[truth.rotation, turned.rotation], &[])
+        .unwrap();
+    (d[0], d[1])
+}
+
+#[test]
+fn near_views_aimed_at_the_box_turn_the_mug_s_body_back() {
+    // crops at the particles, on the turned body's place, match the turned pose there; the
+    // crop aimed at the detector's box is the same for the truth and the turn, and its
+    // box-centred templates tell the handle's side
+    let (truth, turned) = turned_mug_with_box_rotation(true);
+    eprintln!("aimed: density at the truth {truth:.3e}, at the turned pose {turned:.3e}");
+    let (t0, f0) = turned_mug_with_box_rotation(false);
+    eprintln!("not aimed: density at the truth {t0:.3e}, at the turned pose {f0:.3e}");
+    assert!(truth > 20.0 * turned, "aimed: {truth:.3e} against {turned:.3e}");
+    // the boxes and the depth alone move the belief too, more slowly
+    assert!(
+        truth / turned > 3.0 * (t0 / f0),
+        "aimed {:.1} against not aimed {:.1}",
+        truth / turned,
+        t0 / f0
+    );
 }

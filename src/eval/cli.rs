@@ -134,6 +134,7 @@ pub fn tracker_config_with(overrides: &serde_json::Value) -> anyhow::Result<Trac
     full["support"] = serde_json::to_value(crate::tracker::support::SupportConfig::default())?;
     // off by default and then left out of the settings (their hash stays that of the map)
     full["observation"]["full_area_px"] = serde_json::json!(0.0);
+    full["observation"]["near_box_rotation"] = serde_json::json!(false);
     full["twins"]["near_max_trimmed_rel"] = serde_json::json!(0.0);
     full["twins"]["near_min_object_px"] = serde_json::json!(0.0);
     full["verification"]["register_modes"] = serde_json::json!(false);

@@ -95,6 +95,13 @@ pub struct ObservationConfig {
     /// codebooks are built without the box-centred one.
     #[serde(default = "default_true")]
     pub box_codes: bool,
+    /// With the box codes: a view at or above `box_crops_below_px` is encoded twice, its crop
+    /// aimed at the detector's box for the rotation's histograms and a crop at each particle
+    /// for the particles' weights. Aimed crops take the turn that comes with a shift of a
+    /// centimetre (a mug's body, a banana's ends) out of the rotation, but all particles then
+    /// share one crop and the codes no longer say where the object is. False by default.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub near_box_rotation: bool,
 }
 
 /// How a detection's box weighs the particles of a view: a Gaussian on the distance (pixels)
@@ -143,6 +150,7 @@ impl Default for ObservationConfig {
             detection_box: default_detection_box(),
             box_crops_below_px: default_box_crops_below_px(),
             box_codes: true,
+            near_box_rotation: false,
         }
     }
 }

@@ -32,6 +32,18 @@ struct Encoded {
     area_px: f32,
     /// Its crops are centred on a detector's box and matched against the box-centred codes.
     box_centred: bool,
+    /// What its evidence updates (`ObservationConfig::near_box_rotation`).
+    role: Role,
+}
+
+/// What a view's evidence updates: a view is usually encoded once for both; with
+/// `ObservationConfig::near_box_rotation` a near view is encoded twice, its crop aimed at the
+/// detector's box for the rotation and a crop at each particle for the weights.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Role {
+    Both,
+    Rotation,
+    Weights,
 }
 
 impl Encoded {
@@ -195,34 +207,56 @@ impl TrackUpdate<'_> {
                 .then_some(object_box)
                 .flatten()
                 .map(|(centre, _)| crate::tracker::observation::box_aimed(&frame.intrinsics, centre, &positions));
-            let box_centred = aimed.is_some() && box_codes;
-            let (codes, valid, central_depth, crops_s, encoding_s) =
-                encode_particles(&codebook, &img, aimed.as_deref().unwrap_or(&positions));
-            report.timings.crops_s += crops_s;
-            report.timings.encoding_s += encoding_s;
-            if !valid.iter().any(|v| *v) {
-                continue;
-            }
+            // a near view aimed at the box as well, for the rotation alone
+            let also_aimed = if aimed.is_none() && box_codes && obs_cfg.near_box_rotation {
+                object_box
+                    .map(|(centre, _)| crate::tracker::observation::box_aimed(&frame.intrinsics, centre, &positions))
+            } else {
+                None
+            };
             let q = crate::geometry::ray_rotation(&mean_view).inverse()
                 * view_from_ref.rotation
                 * reference_from_hist.rotation
                 * crate::geometry::ray_rotation(&mean_hist);
-            encoded.push(Encoded {
-                camera: frame.camera.clone(),
-                codes,
-                valid,
-                central_depth,
-                positions_in_view_m: positions,
-                q,
-                dense_map: None,
-                size_px,
-                box_centred,
-                area_px: crate::tracker::observation::object_area_px(
-                    self.models[mi].silhouette_m2,
-                    &frame.intrinsics,
-                    mean_view.z,
-                ) as f32,
-            });
+            let area_px = crate::tracker::observation::object_area_px(
+                self.models[mi].silhouette_m2,
+                &frame.intrinsics,
+                mean_view.z,
+            ) as f32;
+            let mut passes = vec![(
+                aimed,
+                if also_aimed.is_some() {
+                    Role::Weights
+                } else {
+                    Role::Both
+                },
+            )];
+            if let Some(a) = also_aimed {
+                passes.push((Some(a), Role::Rotation));
+            }
+            for (crop_at, role) in passes {
+                let box_centred = crop_at.is_some() && box_codes;
+                let (codes, valid, central_depth, crops_s, encoding_s) =
+                    encode_particles(&codebook, &img, crop_at.as_deref().unwrap_or(&positions));
+                report.timings.crops_s += crops_s;
+                report.timings.encoding_s += encoding_s;
+                if !valid.iter().any(|v| *v) {
+                    continue;
+                }
+                encoded.push(Encoded {
+                    camera: frame.camera.clone(),
+                    codes,
+                    valid,
+                    central_depth,
+                    positions_in_view_m: positions.clone(),
+                    q,
+                    dense_map: None,
+                    size_px,
+                    box_centred,
+                    area_px,
+                    role,
+                });
+            }
         }
 
         // 2. the matched set: lattice, active bins, this step's slice (or every bin)
@@ -373,16 +407,22 @@ impl TrackUpdate<'_> {
         let mut best_sim = f32::NEG_INFINITY;
         // each particle's log-likelihood of its position: the views' depth checks and boxes
         let mut position_log = vec![0f32; n];
+        let mut roles: Vec<Role> = Vec::new();
         for (k, ((e, b), mut sim)) in encoded.iter().zip(&best).zip(sims).enumerate() {
             match e.evidence(&codebook, &mut sim, b, &obs_cfg) {
                 Some(ev) => {
                     best_sim = best_sim.max(ev.best_similarity);
-                    seen_by.push(e.camera.clone());
-                    for (d, l) in position_log.iter_mut().zip(&ev.depth_log) {
-                        *d += l;
+                    if !seen_by.contains(&e.camera) {
+                        seen_by.push(e.camera.clone());
+                    }
+                    if e.role != Role::Rotation {
+                        for (d, l) in position_log.iter_mut().zip(&ev.depth_log) {
+                            *d += l;
+                        }
                     }
                     evidence.push(ev);
                     evidence_view.push(k);
+                    roles.push(e.role);
                 }
                 None => self.sims.push(sim),
             }
@@ -406,7 +446,20 @@ impl TrackUpdate<'_> {
         track.best_similarity = best_sim.is_finite().then_some(best_sim as f64);
         let had_evidence = !evidence.is_empty();
         if had_evidence {
-            let refs: Vec<&ViewEvidence> = evidence.iter().collect();
+            let refs: Vec<&ViewEvidence> = evidence
+                .iter()
+                .zip(&roles)
+                .filter(|(_, r)| **r != Role::Weights)
+                .map(|(e, _)| e)
+                .collect();
+            // the weights' evidence, where a near view was encoded twice
+            let weight_refs: Vec<&ViewEvidence> = evidence
+                .iter()
+                .zip(&roles)
+                .filter(|(_, r)| **r != Role::Rotation)
+                .map(|(e, _)| e)
+                .collect();
+            let split = roles.iter().any(|r| *r != Role::Both);
             // per particle max of the fused log-likelihood, for exp's range; with floored views
             // the sum cannot go below `floor * views` (exp of that is well inside f32), so the
             // pass is skipped and 0 (the largest possible value) used
@@ -439,6 +492,36 @@ impl TrackUpdate<'_> {
             let v_unmatched = unmatched.1;
             let unmatched = unmatched.0;
             let marginal: Vec<f64> = sums.iter().zip(&unmatched).map(|(a, b)| a + b).collect();
+            // the weights' marginal: the same, over the crops at each particle where a near view
+            // was encoded twice (the histograms take the crops aimed at the box)
+            let (marginal_w, fmax_w) = if split {
+                let worst = obs_cfg.loglik_floor * weight_refs.len() as f32;
+                let fmax_w = if worst > -80.0 {
+                    vec![0f32; n]
+                } else {
+                    fused_max(&weight_refs, bins.len(), n)
+                };
+                let (_, sums_w) = fused_update(&bins, &slots, &weight_refs, &s.rot, &tables, floor_rel, &fmax_w, sf);
+                let unmatched_w = if matching.dense {
+                    vec![0.0; n]
+                } else {
+                    unmatched_mass(
+                        &lattice,
+                        &weight_refs,
+                        &lattice_rows,
+                        &bins,
+                        &s.rot,
+                        &tables,
+                        floor_rel,
+                        &fmax_w,
+                        sf,
+                    )
+                    .0
+                };
+                (sums_w.iter().zip(&unmatched_w).map(|(a, b)| a + b).collect(), fmax_w)
+            } else {
+                (marginal.clone(), fmax.clone())
+            };
             // new log weights: old + (log marginal (Eq. 7) + position terms) tempered by the number
             // of views (see `TrackerConfig::view_weight_tempering`)
             let alpha = weight_exponent(seen_by.len(), self.config.view_weight_tempering);
@@ -446,7 +529,7 @@ impl TrackUpdate<'_> {
             let mut logw: Vec<f64> = (0..n)
                 .map(|p| {
                     s.weights[p].max(1e-300).ln()
-                        + alpha * (marginal[p].max(1e-300).ln() + fmax[p] as f64 + position_log[p] as f64)
+                        + alpha * (marginal_w[p].max(1e-300).ln() + fmax_w[p] as f64 + position_log[p] as f64)
                 })
                 .collect();
             let m = logw.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
