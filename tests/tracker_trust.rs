@@ -478,6 +478,14 @@ fn ycb_mesh(name: &str) -> pregrasp::mesh::Mesh {
     pregrasp::mesh::Mesh::load(&shared.join(format!("ycb/{name}.ply"))).unwrap_or_else(|e| panic!("{name}: {e}"))
 }
 
+/// `truth` turned by `turn` about the turn's axis, its surface left in place.
+fn turned_pose(truth: &Pose, turn: &pregrasp::symmetry::CentredTurn) -> Pose {
+    Pose::from_parts(
+        (truth.translation.vector + turn.origin_shift(&truth.rotation)).into(),
+        truth.rotation * turn.rotation,
+    )
+}
+
 /// The track starts on `turn` of the truth (rotation and position of the turned joint pose,
 /// both confident) of `mesh` on a table, seen by `cams`. Returns the step (10 Hz) from which
 /// the position's error stayed below 1 cm, the rotation's densities at the truth and at the
@@ -494,10 +502,7 @@ fn turned_start_of(
         ..TrackerConfig::default()
     };
     let (mut tracker, scene, truth) = mesh_on_table("object", mesh, yaw_rad, cams, config);
-    let turned = Pose::from_parts(
-        (truth.translation.vector + turn.origin_shift(&truth.rotation)).into(),
-        truth.rotation * turn.rotation,
-    );
+    let turned = turned_pose(&truth, &turn);
     let id = tracker
         .start_track(
             "object",
@@ -731,10 +736,7 @@ fn turned_mug_with_box_rotation(near_box_rotation: bool) -> (f64, f64) {
     let mut tracker = Tracker::new(config, stationary(&cams), "a".into());
     tracker.add_object_model("mug", mesh, cb);
     let truth = cams[0].1.inverse() * truth_world;
-    let turned = Pose::from_parts(
-        (truth.translation.vector + turn.origin_shift(&truth.rotation)).into(),
-        truth.rotation * turn.rotation,
-    );
+    let turned = turned_pose(&truth, &turn);
     let id = tracker
         .start_track(
             "mug",

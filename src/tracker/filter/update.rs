@@ -446,81 +446,58 @@ impl TrackUpdate<'_> {
         track.best_similarity = best_sim.is_finite().then_some(best_sim as f64);
         let had_evidence = !evidence.is_empty();
         if had_evidence {
-            let refs: Vec<&ViewEvidence> = evidence
-                .iter()
-                .zip(&roles)
-                .filter(|(_, r)| **r != Role::Weights)
-                .map(|(e, _)| e)
-                .collect();
-            // the weights' evidence, where a near view was encoded twice
-            let weight_refs: Vec<&ViewEvidence> = evidence
-                .iter()
-                .zip(&roles)
-                .filter(|(_, r)| **r != Role::Rotation)
-                .map(|(e, _)| e)
-                .collect();
-            let split = roles.iter().any(|r| *r != Role::Both);
-            // per particle max of the fused log-likelihood, for exp's range; with floored views
-            // the sum cannot go below `floor * views` (exp of that is well inside f32), so the
-            // pass is skipped and 0 (the largest possible value) used
-            let worst = obs_cfg.loglik_floor * refs.len() as f32;
-            let fmax = if worst > -80.0 {
-                vec![0f32; n]
-            } else {
-                fused_max(&refs, bins.len(), n)
+            // the histograms' evidence, and the weights' (they differ where a near view was
+            // encoded twice: the histograms take the crops aimed at the box)
+            let without = |skip: Role| -> Vec<&ViewEvidence> {
+                evidence
+                    .iter()
+                    .zip(&roles)
+                    .filter(|(_, r)| **r != skip)
+                    .map(|(e, _)| e)
+                    .collect()
             };
+            let refs = without(Role::Weights);
             let floor_rel = self.config.prior_floor_rel as f32;
             let s = &self.state;
             let sf = support_factors.as_deref();
-            let (mut post, sums) = fused_update(&bins, &slots, &refs, &s.rot, &tables, floor_rel, &fmax, sf);
-            // the bins left out: each at its lattice cell's likelihood, on the prior's floor
-            let unmatched = if matching.dense {
-                (vec![0.0; n], 0.0)
-            } else {
-                unmatched_mass(
-                    &lattice,
-                    &refs,
-                    &lattice_rows,
-                    &bins,
-                    &s.rot,
-                    &tables,
-                    floor_rel,
-                    &fmax,
-                    sf,
-                )
-            };
-            let v_unmatched = unmatched.1;
-            let unmatched = unmatched.0;
-            let marginal: Vec<f64> = sums.iter().zip(&unmatched).map(|(a, b)| a + b).collect();
-            // the weights' marginal: the same, over the crops at each particle where a near view
-            // was encoded twice (the histograms take the crops aimed at the box)
-            let (marginal_w, fmax_w) = if split {
-                let worst = obs_cfg.loglik_floor * weight_refs.len() as f32;
-                let fmax_w = if worst > -80.0 {
+            // the fused posterior of `refs` on the matched bins, each particle's marginal (matched
+            // and unmatched bins), the per-particle max it is scaled by, and the unmatched volume
+            let fuse = |refs: &[&ViewEvidence]| {
+                // per particle max of the fused log-likelihood, for exp's range; with floored
+                // views the sum cannot go below `floor * views` (exp of that is well inside
+                // f32), so the pass is skipped and 0 (the largest possible value) used
+                let worst = obs_cfg.loglik_floor * refs.len() as f32;
+                let fmax = if worst > -80.0 {
                     vec![0f32; n]
                 } else {
-                    fused_max(&weight_refs, bins.len(), n)
+                    fused_max(refs, bins.len(), n)
                 };
-                let (_, sums_w) = fused_update(&bins, &slots, &weight_refs, &s.rot, &tables, floor_rel, &fmax_w, sf);
-                let unmatched_w = if matching.dense {
-                    vec![0.0; n]
+                let (post, sums) = fused_update(&bins, &slots, refs, &s.rot, &tables, floor_rel, &fmax, sf);
+                // the bins left out: each at its lattice cell's likelihood, on the prior's floor
+                let (unmatched, v_unmatched) = if matching.dense {
+                    (vec![0.0; n], 0.0)
                 } else {
                     unmatched_mass(
                         &lattice,
-                        &weight_refs,
+                        refs,
                         &lattice_rows,
                         &bins,
                         &s.rot,
                         &tables,
                         floor_rel,
-                        &fmax_w,
+                        &fmax,
                         sf,
                     )
-                    .0
                 };
-                (sums_w.iter().zip(&unmatched_w).map(|(a, b)| a + b).collect(), fmax_w)
+                let marginal: Vec<f64> = sums.iter().zip(&unmatched).map(|(a, b)| a + b).collect();
+                (post, marginal, unmatched, fmax, v_unmatched)
+            };
+            let (mut post, marginal, unmatched, fmax, v_unmatched) = fuse(&refs);
+            let (marginal_w, fmax_w) = if roles.iter().any(|r| *r != Role::Both) {
+                let (_, m, _, f, _) = fuse(&without(Role::Rotation));
+                (m, f)
             } else {
-                (marginal.clone(), fmax.clone())
+                (marginal.clone(), fmax)
             };
             // new log weights: old + (log marginal (Eq. 7) + position terms) tempered by the number
             // of views (see `TrackerConfig::view_weight_tempering`)
