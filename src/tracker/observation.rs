@@ -99,7 +99,9 @@ pub struct ObservationConfig {
     /// aimed at the detector's box for the rotation's histograms and a crop at each particle
     /// for the particles' weights. Aimed crops take the turn that comes with a shift of a
     /// centimetre (a mug's body, a banana's ends) out of the rotation, but all particles then
-    /// share one crop and the codes no longer say where the object is. False by default.
+    /// share one crop and the codes no longer say where the object is. False by default: the
+    /// box of a partly hidden object is its visible part's, and on the real clip (the mug behind
+    /// a block) the aimed crops turn the track away (`docs/decisions.md`).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub near_box_rotation: bool,
 }
