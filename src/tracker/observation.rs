@@ -99,9 +99,10 @@ pub struct ObservationConfig {
     /// aimed at the detector's box for the rotation's histograms and a crop at each particle
     /// for the particles' weights. Aimed crops take the turn that comes with a shift of a
     /// centimetre (a mug's body, a banana's ends) out of the rotation, but all particles then
-    /// share one crop and the codes no longer say where the object is. False by default: the
-    /// box of a partly hidden object is its visible part's, and on the real clip (the mug behind
-    /// a block) the aimed crops turn the track away (`docs/decisions.md`).
+    /// share one crop and the codes no longer say where the object is. A view whose box
+    /// something nearer partly hides is not aimed ([`box_hides_object`]: the box is then the
+    /// visible part's). False by default: on the real clip (the mug behind a block) it is still
+    /// worse than without (`docs/decisions.md`, "Near views encoded twice").
     #[serde(default, skip_serializing_if = "is_zero")]
     pub near_box_rotation: bool,
 }
@@ -200,6 +201,50 @@ pub fn nearest_box(
         .filter(|d| d.object == object && d.bbox_xywh_px[2] > 1.0 && d.bbox_xywh_px[3] > 1.0)
         .map(|d| (d.centre_px(), sigma_rel * d.bbox_xywh_px[2].max(d.bbox_xywh_px[3])))
         .min_by(|a, b| d2(&a.0, &mean_uv, a.1).total_cmp(&d2(&b.0, &mean_uv, b.1)))
+}
+
+/// Whether something nearer than the object hides part of the square of side `side_px` about
+/// `centre_px` (a detector's box): more than a tenth of its 4 x 4 pixel blocks read a median
+/// depth well in front of the object's front (`depth_m` its centre's, `diameter_m` across).
+/// Such a box is the visible part's, and its centre is not the silhouette's.
+pub fn box_hides_object(
+    depth: &crate::camera::DepthImage,
+    centre_px: [f64; 2],
+    side_px: f64,
+    depth_m: f64,
+    diameter_m: f64,
+) -> bool {
+    let front = depth_m - 0.5 * diameter_m;
+    let limit = (front - (0.08 * front).max(0.03)) as f32;
+    let half = 0.5 * side_px;
+    let (w, h) = (depth.width as i64, depth.height as i64);
+    let x0 = ((centre_px[0] - half).floor() as i64).clamp(0, w);
+    let x1 = ((centre_px[0] + half).ceil() as i64).clamp(0, w);
+    let y0 = ((centre_px[1] - half).floor() as i64).clamp(0, h);
+    let y1 = ((centre_px[1] + half).ceil() as i64).clamp(0, h);
+    let (mut blocks, mut nearer) = (0usize, 0usize);
+    let mut block = Vec::with_capacity(16);
+    for by in (y0..y1).step_by(4) {
+        for bx in (x0..x1).step_by(4) {
+            block.clear();
+            for y in by..(by + 4).min(y1) {
+                for x in bx..(bx + 4).min(x1) {
+                    let d = depth.get(x as u32, y as u32);
+                    if d > 0.0 && d.is_finite() {
+                        block.push(d);
+                    }
+                }
+            }
+            if block.len() < 8 {
+                continue;
+            }
+            let mid = block.len() / 2;
+            block.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+            blocks += 1;
+            nearer += usize::from(block[mid] < limit);
+        }
+    }
+    blocks > 0 && nearer * 10 > blocks
 }
 
 /// Each position moved, at its own depth, onto the ray through pixel `centre_px` (see

@@ -209,7 +209,18 @@ impl TrackUpdate<'_> {
                 .map(|(centre, _)| crate::tracker::observation::box_aimed(&frame.intrinsics, centre, &positions));
             // a near view aimed at the box as well, for the rotation alone
             let also_aimed = if aimed.is_none() && box_codes && obs_cfg.near_box_rotation {
+                // not where something nearer hides part of the object: its box is the visible part's
+                let side_rel = obs_cfg.detection_box.unwrap_or_default().sigma_rel;
                 object_box
+                    .filter(|(centre, sigma)| {
+                        !crate::tracker::observation::box_hides_object(
+                            &frame.depth,
+                            *centre,
+                            sigma / side_rel,
+                            mean_view.z,
+                            codebook.diameter_m,
+                        )
+                    })
                     .map(|(centre, _)| crate::tracker::observation::box_aimed(&frame.intrinsics, centre, &positions))
             } else {
                 None
