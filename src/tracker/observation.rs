@@ -646,6 +646,31 @@ pub fn add_loglik(dst: &mut [f32], ev: &ViewEvidence, map: Option<&[u32]>, n: us
 mod tests {
     use super::*;
 
+    /// A 200 x 200 depth image of a surface at 1 m, with a block at 0.8 m over the columns
+    /// from `hidden_from` on, and a deterministic relative noise of `noise`.
+    fn occluded_depth(hidden_from: u32, noise: f32) -> DepthImage {
+        let data = (0..200u32 * 200)
+            .map(|i| {
+                let (x, y) = (i % 200, i / 200);
+                let base = if x >= hidden_from { 0.8 } else { 1.0 };
+                // a hash in [-1, 1]: noise without a generator
+                let h = ((x.wrapping_mul(73_856_093) ^ y.wrapping_mul(19_349_663)) % 2001) as f32 / 1000.0 - 1.0;
+                base * (1.0 + noise * h)
+            })
+            .collect();
+        DepthImage::new(200, 200, data).unwrap()
+    }
+
+    #[test]
+    fn a_box_partly_behind_a_nearer_surface_is_not_the_object_s_own() {
+        // the object's centre at 1.05 m, 0.1 m across: its front at 1.0 m
+        let hides = |depth: &DepthImage| box_hides_object(depth, [100.0, 100.0], 80.0, 1.05, 0.1);
+        assert!(!hides(&occluded_depth(200, 0.0)), "nothing in front");
+        assert!(!hides(&occluded_depth(200, 0.05)), "noise alone");
+        assert!(hides(&occluded_depth(110, 0.05)), "a block over a third of the box");
+        assert!(!hides(&occluded_depth(138, 0.0)), "a block beside the box");
+    }
+
     #[test]
     fn a_particle_is_scored_by_the_distance_of_its_projection_to_the_object_s_box() {
         let k = Intrinsics::new(640, 480, [600.0, 0.0, 319.5, 0.0, 600.0, 239.5, 0.0, 0.0, 1.0]).unwrap();
