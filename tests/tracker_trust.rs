@@ -530,21 +530,31 @@ fn turned_start_of(
     (placed_at, d[0], d[1], twinned)
 }
 
+/// The YCB mug's half turn about its body's axis (z), through the body's centre.
+fn mug_body_turn(mesh: &pregrasp::mesh::Mesh) -> pregrasp::symmetry::CentredTurn {
+    let turns = pregrasp::symmetry::confusable_turns(mesh, 0.012 * mesh.diameter_m(), 0.005);
+    turns
+        .iter()
+        .find(|t| t.rotation.axis().is_some_and(|a| a.z.abs() > 0.99))
+        .copied()
+        .unwrap_or_else(|| panic!("the body's turn about z: {turns:?}"))
+}
+
+/// Three cameras about half a metre from a mug standing at the origin.
+fn near_mug_cameras() -> [(&'static str, Pose); 3] {
+    [
+        ("a", look_at([0.42, -0.25, 0.3], [0.0, 0.0, 0.045])),
+        ("b", look_at([-0.1, -0.48, 0.28], [0.0, 0.0, 0.045])),
+        ("c", look_at([-0.3, 0.35, 0.3], [0.0, 0.0, 0.045])),
+    ]
+}
+
 /// Three near cameras that see the mug's handle; the track starts on the mug's body turned about
 /// its own axis.
 fn turned_start(twins: Option<TwinConfig>) -> (Option<u64>, f64, f64) {
     let mesh = ycb_mug();
-    let turns = pregrasp::symmetry::confusable_turns(&mesh, 0.012 * mesh.diameter_m(), 0.005);
-    let turn = turns
-        .iter()
-        .find(|t| t.rotation.axis().is_some_and(|a| a.z.abs() > 0.99))
-        .copied()
-        .unwrap_or_else(|| panic!("the body's turn about z: {turns:?}"));
-    let cams = [
-        ("a", look_at([0.42, -0.25, 0.3], [0.0, 0.0, 0.045])),
-        ("b", look_at([-0.1, -0.48, 0.28], [0.0, 0.0, 0.045])),
-        ("c", look_at([-0.3, 0.35, 0.3], [0.0, 0.0, 0.045])),
-    ];
+    let turn = mug_body_turn(&mesh);
+    let cams = near_mug_cameras();
     // the handle away from camera a (whose view of the turned pose shows it) and side on to b
     let (at, truth, turned, _) = turned_start_of(mesh, 2.97, turn, &cams, twins);
     (at, truth, turned)
@@ -706,16 +716,8 @@ fn near_twins_turn_the_mustard_bottle_over_only_where_a_view_sees_it_large() {
 /// cameras with detections, no view aimed at the box by its size, and `near_box_rotation`.
 fn turned_mug_with_box_rotation(near_box_rotation: bool) -> (f64, f64) {
     let mesh = ycb_mug();
-    let turns = pregrasp::symmetry::confusable_turns(&mesh, 0.012 * mesh.diameter_m(), 0.005);
-    let turn = *turns
-        .iter()
-        .find(|t| t.rotation.axis().is_some_and(|a| a.z.abs() > 0.99))
-        .unwrap_or_else(|| panic!("the body's turn about z: {turns:?}"));
-    let cams = [
-        ("a", look_at([0.42, -0.25, 0.3], [0.0, 0.0, 0.045])),
-        ("b", look_at([-0.1, -0.48, 0.28], [0.0, 0.0, 0.045])),
-        ("c", look_at([-0.3, 0.35, 0.3], [0.0, 0.0, 0.045])),
-    ];
+    let turn = mug_body_turn(&mesh);
+    let cams = near_mug_cameras();
     let grid = pregrasp::geometry::RotationGrid::new(10).unwrap();
     let book = pregrasp::tracker::codebook::CodebookConfig {
         box_table: true,

@@ -245,7 +245,9 @@ impl TrackUpdate<'_> {
             if let Some(a) = also_aimed {
                 passes.push((Some(a), Role::Rotation));
             }
-            for (crop_at, role) in passes {
+            let last = passes.len() - 1;
+            let mut positions = positions;
+            for (i, (crop_at, role)) in passes.into_iter().enumerate() {
                 let box_centred = crop_at.is_some() && box_codes;
                 let (codes, valid, central_depth, crops_s, encoding_s) =
                     encode_particles(&codebook, &img, crop_at.as_deref().unwrap_or(&positions));
@@ -259,7 +261,12 @@ impl TrackUpdate<'_> {
                     codes,
                     valid,
                     central_depth,
-                    positions_in_view_m: positions.clone(),
+                    // copied only for a view encoded twice
+                    positions_in_view_m: if i == last {
+                        std::mem::take(&mut positions)
+                    } else {
+                        positions.clone()
+                    },
                     q,
                     dense_map: None,
                     size_px,
@@ -504,11 +511,15 @@ impl TrackUpdate<'_> {
                 (post, marginal, unmatched, fmax, v_unmatched)
             };
             let (mut post, marginal, unmatched, fmax, v_unmatched) = fuse(&refs);
-            let (marginal_w, fmax_w) = if roles.iter().any(|r| *r != Role::Both) {
-                let (_, m, _, f, _) = fuse(&without(Role::Rotation));
-                (m, f)
-            } else {
-                (marginal.clone(), fmax)
+            // the weights' own fusion only where a near view was encoded twice (its posterior,
+            // computed alongside, is not used)
+            let weights_fused = roles
+                .iter()
+                .any(|r| *r != Role::Both)
+                .then(|| fuse(&without(Role::Rotation)));
+            let (marginal_w, fmax_w) = match &weights_fused {
+                Some((_, m, _, f, _)) => (m.as_slice(), f.as_slice()),
+                None => (marginal.as_slice(), fmax.as_slice()),
             };
             // new log weights: old + (log marginal (Eq. 7) + position terms) tempered by the number
             // of views (see `TrackerConfig::view_weight_tempering`)
